@@ -1,0 +1,33 @@
+# Everything runs from a virtual environment inside the repo (.venv); `make setup` builds it.
+PY ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+export OMP_WAIT_POLICY := PASSIVE
+
+.PHONY: setup test test-slow demo bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install --upgrade pip
+	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
+	$(BIN)/pip install torch==2.13.0
+	$(BIN)/pip install -e '.[dev]'
+	touch $(STAMP)
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+test-slow: setup
+	$(BIN)/python -m pytest -q -m slow
+
+demo: setup
+	$(BIN)/python -m ev3dgs.demo --out demo_out
+
+bench: setup
+	$(BIN)/python tools/bench_sim.py --json tools/results/bench_sim.json --plot tools/results/bench_sim.png
+
+clean:
+	rm -rf $(VENV) demo_out .pytest_cache

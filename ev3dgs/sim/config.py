@@ -1,0 +1,182 @@
+"""Simulator configuration. An effect runs only when its table is present in the config.
+
+```toml
+[dvs]
+pos_threshold = 0.2          # log-intensity ON threshold
+neg_threshold = 0.2          # log-intensity OFF threshold
+[dvs.threshold_mismatch]     # frozen per-pixel thresholds ~ N(nominal, sigma)
+sigma = 0.03
+[dvs.refractory]
+period_us = 500
+[dvs.leak]                   # ON events from reference drift
+rate_hz = 0.1
+[dvs.shot_noise]             # random ON/OFF events, most frequent in the dark
+rate_hz = 1.0
+[dvs.lowpass]                # photoreceptor bandwidth, proportional to intensity
+cutoff_hz = 300
+[dvs.color_filter]           # DAVIS346 colour: each pixel sees its CFA channel
+pattern = "RGGB"
+[isp]                        # raw <-> sRGB (blur); see ev3dgs.sim.isp
+[sensor_noise]               # shot + read noise of the blurry frame
+iso = 800
+```
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..config import check, from_dict, load_toml
+from ..logmap import DEFAULT_LOG_KNEE
+
+BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+
+
+@dataclass(frozen=True)
+class ThresholdMismatch:
+    """Per-pixel ON and OFF thresholds drawn once (fixed-pattern noise) from N(nominal, sigma)."""
+
+    sigma: float = 0.03
+    min_threshold: float = 0.01  # draws are clipped here so no pixel gets a zero or negative threshold
+
+    def __post_init__(self):
+        check(self.sigma >= 0, "dvs.threshold_mismatch.sigma must be >= 0")
+        check(self.min_threshold > 0, "dvs.threshold_mismatch.min_threshold must be > 0")
+
+
+@dataclass(frozen=True)
+class Refractory:
+    """After an event the pixel is held in reset for `period_us`; see ev3dgs.sim.kernel for semantics."""
+
+    period_us: float = 500.0
+
+    def __post_init__(self):
+        check(self.period_us > 0, "dvs.refractory.period_us must be > 0")
+
+
+@dataclass(frozen=True)
+class Leak:
+    """The reference drifts down, giving ON events at `rate_hz` per pixel on a static scene.
+
+    Per-pixel rates are log-normal with `rate_spread_decades` standard deviation (in decades), normalised so
+    that their mean over pixels is `rate_hz`.
+    """
+
+    rate_hz: float = 0.1
+    rate_spread_decades: float = 0.1
+
+    def __post_init__(self):
+        check(self.rate_hz > 0, "dvs.leak.rate_hz must be > 0")
+        check(0 <= self.rate_spread_decades <= 3, "dvs.leak.rate_spread_decades must be in [0, 3]")
+
+
+@dataclass(frozen=True)
+class ShotNoise:
+    """Poisson noise events: `rate_hz` per pixel (ON+OFF together) at intensity 0, falling linearly to
+    `white_fraction * rate_hz` at intensity 1 (and staying there for HDR values). Each event resets the
+    pixel, as a real noise-triggered reset does."""
+
+    rate_hz: float = 1.0
+    white_fraction: float = 0.25
+
+    def __post_init__(self):
+        check(self.rate_hz > 0, "dvs.shot_noise.rate_hz must be > 0")
+        check(0 <= self.white_fraction <= 1, "dvs.shot_noise.white_fraction must be in [0, 1]")
+
+
+@dataclass(frozen=True)
+class LowPass:
+    """First-order photoreceptor filter; cutoff = cutoff_hz * (I + dark) / (1 + dark) at intensity I."""
+
+    cutoff_hz: float = 300.0
+    dark_intensity: float = DEFAULT_LOG_KNEE
+
+    def __post_init__(self):
+        check(self.cutoff_hz > 0, "dvs.lowpass.cutoff_hz must be > 0")
+        check(self.dark_intensity > 0, "dvs.lowpass.dark_intensity must be > 0")
+
+
+@dataclass(frozen=True)
+class ColorFilter:
+    """A Bayer colour filter array: pattern of the top-left 2x2 block, row-major."""
+
+    pattern: str = "RGGB"
+
+    def __post_init__(self):
+        check(self.pattern in BAYER_PATTERNS, f"dvs.color_filter.pattern must be one of {BAYER_PATTERNS}")
+
+
+@dataclass(frozen=True)
+class DVSConfig:
+    pos_threshold: float = 0.2
+    neg_threshold: float = 0.2
+    log_knee: float = DEFAULT_LOG_KNEE
+    threshold_mismatch: ThresholdMismatch | None = None
+    refractory: Refractory | None = None
+    leak: Leak | None = None
+    shot_noise: ShotNoise | None = None
+    lowpass: LowPass | None = None
+    color_filter: ColorFilter | None = None
+
+    def __post_init__(self):
+        check(0 < self.pos_threshold <= 10, "dvs.pos_threshold must be in (0, 10]")
+        check(0 < self.neg_threshold <= 10, "dvs.neg_threshold must be in (0, 10]")
+        check(0 < self.log_knee <= 1, "dvs.log_knee must be in (0, 1]")
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        """Names of the effects this config turns on, in pipeline order."""
+        names = ("color_filter", "lowpass", "threshold_mismatch", "leak", "shot_noise", "refractory")
+        return tuple(n for n in names if getattr(self, n) is not None)
+
+
+@dataclass(frozen=True)
+class ISPConfig:
+    """Camera ISP. Defaults: a typical daylight white balance and a camera->sRGB colour matrix whose rows
+    sum to 1 (white stays white) with a non-negative inverse (any in-gamut colour has a non-negative raw)."""
+
+    white_balance: tuple[float, float, float] = (2.0, 1.0, 1.6)
+    ccm: tuple[tuple[float, float, float], ...] = (
+        (1.60, -0.45, -0.15),
+        (-0.25, 1.50, -0.25),
+        (-0.05, -0.55, 1.60),
+    )
+    mosaic: str = "none"  # or a Bayer pattern: the raw is one channel per pixel, demosaiced by OpenCV
+
+    def __post_init__(self):
+        check(len(self.ccm) == 3, "isp.ccm must be 3x3")
+        check(all(g > 0 for g in self.white_balance), "isp.white_balance gains must be > 0")
+        check(self.mosaic == "none" or self.mosaic in BAYER_PATTERNS,
+              f"isp.mosaic must be 'none' or one of {BAYER_PATTERNS}")
+        import numpy as np
+
+        m = np.array(self.ccm, dtype=float)
+        check(abs(np.linalg.det(m)) > 1e-6, "isp.ccm must be invertible")
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Shot and read noise of the APS frame. `full_well_electrons` is at ISO 100; higher ISO divides it."""
+
+    iso: float = 100.0
+    full_well_electrons: float = 10000.0
+    read_noise_electrons: float = 3.0
+
+    def __post_init__(self):
+        check(self.iso > 0, "sensor_noise.iso must be > 0")
+        check(self.full_well_electrons > 0, "sensor_noise.full_well_electrons must be > 0")
+        check(self.read_noise_electrons >= 0, "sensor_noise.read_noise_electrons must be >= 0")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    dvs: DVSConfig = field(default_factory=DVSConfig)
+    isp: ISPConfig = field(default_factory=ISPConfig)
+    sensor_noise: SensorNoise | None = None
+
+
+def load_sim_config(path: str | Path | None) -> SimConfig:
+    """Read a simulator TOML config; None gives the defaults (no effects)."""
+    if path is None:
+        return SimConfig()
+    return from_dict(SimConfig, load_toml(path))
