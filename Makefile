@@ -21,7 +21,8 @@ test: setup
 	$(BIN)/python -m pytest -q
 
 test-slow: setup
-	$(BIN)/python -m pytest -q -m slow
+	# pytest exits 5 when no test is marked slow: that is not a failure
+	$(BIN)/python -m pytest -q -m slow || [ $$? -eq 5 ]
 
 demo: setup
 	$(BIN)/python -m ev3dgs.demo --out demo_out

@@ -1,0 +1,541 @@
+"""The scene file (HDF5, schema version 1): dataclasses, atomic `write`, lazy `read`, `validate`.
+
+The layout is the one in ARCHITECTURE.md ("The scene file"). `read` returns the large arrays (events,
+train images and sharp frames, test images) as `LazyArray` objects that open the file on access; the
+events come as a `LazyEvents` (same t/x/y/p attribute names as `Events`, `load()` reads them all).
+Small arrays (K, distortion, exposure, poses, points, imu) are read eagerly as numpy arrays.
+`write` accepts numpy arrays or `LazyArray`s (copied chunk-wise) and an `Events` or `LazyEvents`.
+Every problem with a file is a `SchemaError` whose message starts with the path inside the file.
+"""
+from __future__ import annotations
+
+import datetime
+import json
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import h5py
+import numpy as np
+
+from .errors import SchemaError
+from .events import Events
+
+FORMAT = "ev3dgs-scene"
+VERSION = 1
+COLOR_FILTERS = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
+CHECK_ROWS = 1 << 20        # events scanned per step by validate
+EVENT_CHUNK = 1 << 18       # HDF5 chunk length of the event datasets
+_COPY_BYTES = 64 << 20      # bytes per block when copying a large array into the file
+_GZIP = dict(compression="gzip", compression_opts=4, shuffle=True)
+_EVENT_DTYPES = (("t", np.int64), ("x", np.uint16), ("y", np.uint16), ("p", np.int8))
+
+
+class LazyArray:
+    """One dataset of a scene file, read on access: `a[i:j]`, `a[[1, 5]]`, `np.asarray(a)`, `a.read()`."""
+
+    def __init__(self, path: str | os.PathLike, name: str, shape: tuple[int, ...], dtype: Any) -> None:
+        self.path = str(path)
+        self.name = name
+        self.shape = tuple(int(s) for s in shape)
+        self.dtype = np.dtype(dtype)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __repr__(self) -> str:
+        return f"LazyArray({self.path!r}, {self.name!r}, shape={self.shape}, dtype={self.dtype})"
+
+    @contextmanager
+    def _dataset(self) -> Iterator[h5py.Dataset]:
+        try:
+            with h5py.File(self.path, "r") as f:
+                yield f[self.name]
+        except (OSError, RuntimeError) as e:
+            raise SchemaError(f"{self.name}: cannot read from {self.path} ({e})") from None
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        with self._dataset() as ds:
+            return ds[key]
+
+    def read(self) -> np.ndarray:
+        """The whole array in memory."""
+        return self[()]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        a = self.read()
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+    def iter_blocks(self, rows: int) -> Iterator[tuple[int, np.ndarray]]:
+        """(start row, block) pairs of at most `rows` rows, with the file opened once."""
+        with self._dataset() as ds:
+            for start in range(0, self.shape[0], rows):
+                yield start, ds[start:start + rows]
+
+
+@dataclass
+class LazyEvents:
+    """The events of a scene file as LazyArrays (attributes t, x, y, p like `Events`); `load()` reads them."""
+
+    t: LazyArray
+    x: LazyArray
+    y: LazyArray
+    p: LazyArray
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def load(self) -> Events:
+        return Events(self.t.read(), self.x.read(), self.y.read(), self.p.read())
+
+
+@dataclass
+class Camera:
+    width: int
+    height: int
+    K: np.ndarray | None = None                      # f8 (3,3); None in an events-only file
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros(5))   # OpenCV k1 k2 p1 p2 k3
+    background: tuple[float, float, float] | None = None
+
+
+@dataclass
+class EventSensor:
+    pos_threshold: float = 0.2                        # log units, nominal
+    neg_threshold: float = 0.2
+    color_filter: str = "none"                        # "none" or RGGB/BGGR/GRBG/GBRG
+    refractory_us: float = 0
+    log_knee: float | None = None                     # optional, for the trainer's log model
+
+
+@dataclass
+class Train:
+    images: Any                                       # u1 (N,H,W,3), np.ndarray or LazyArray
+    exposure: np.ndarray                              # i8 (N,2) [start, end)
+    poses: np.ndarray | None = None                   # f8 (N,S,4,4) camera-to-world
+    pose_t: np.ndarray | None = None                  # i8 (N,S)
+    sharp: Any = None                                 # u1 (N,H,W,3)
+    sharp_poses: np.ndarray | None = None             # f8 (N,4,4)
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+
+@dataclass
+class Test:
+    __test__ = False  # not a pytest test class, despite the name
+    images: Any                                       # u1 (M,H,W,3)
+    poses: np.ndarray                                 # f8 (M,4,4)
+
+
+@dataclass
+class Points:
+    xyz: np.ndarray                                   # f4 (P,3)
+    rgb: np.ndarray                                   # u1 (P,3)
+
+
+@dataclass
+class Imu:
+    t: np.ndarray                                     # i8 (I,)
+    accel: np.ndarray                                 # f4 (I,3) g
+    gyro: np.ndarray                                  # f4 (I,3) deg/s
+    temperature: np.ndarray                           # f4 (I,)
+
+
+@dataclass
+class Scene:
+    name: str
+    source: str
+    camera: Camera
+    events: Events | LazyEvents
+    sensor: EventSensor
+    train: Train | None = None
+    test: Test | None = None
+    points: Points | None = None
+    imu: Imu | None = None
+    bounds: np.ndarray | None = None                  # f8 (2,3) AABB min, max
+    config: dict = field(default_factory=dict)        # provenance, stored as JSON text
+    created: str = ""                                 # ISO 8601 UTC, set by write when empty
+
+
+# group -> (dataset, dtype, shape, large: lazy + compressed, must be finite); H, W are the camera's size.
+_U1, _I8, _F4, _F8 = (np.dtype(c) for c in ("u1", "i8", "f4", "f8"))
+_PARTS = {
+    "train": (("images", _U1, ("N", "H", "W", 3), True, False), ("exposure", _I8, ("N", 2), False, False),
+              ("poses", _F8, ("N", "S", 4, 4), False, True), ("pose_t", _I8, ("N", "S"), False, False),
+              ("sharp", _U1, ("N", "H", "W", 3), True, False), ("sharp_poses", _F8, ("N", 4, 4), False, True)),
+    "test": (("images", _U1, ("M", "H", "W", 3), True, False), ("poses", _F8, ("M", 4, 4), False, True)),
+    "points": (("xyz", _F4, ("P", 3), False, True), ("rgb", _U1, ("P", 3), False, False)),
+    "imu": (("t", _I8, ("I",), False, False), ("accel", _F4, ("I", 3), False, False),
+            ("gyro", _F4, ("I", 3), False, False), ("temperature", _F4, ("I",), False, False)),
+}
+_OPTIONAL = ("/train/poses", "/train/pose_t", "/train/sharp", "/train/sharp_poses")
+_CLASSES = {"train": Train, "test": Test, "points": Points, "imu": Imu}
+
+
+# ----------------------------------------------------------------------------------------- write
+
+def _blocks(src: Any, rows: int) -> Iterator[tuple[int, np.ndarray]]:
+    if isinstance(src, LazyArray):
+        yield from src.iter_blocks(rows)
+        return
+    a = src if isinstance(src, h5py.Dataset) else np.asarray(src)
+    for start in range(0, len(a), rows):
+        yield start, a[start:start + rows]
+
+
+def _cast(a: Any, dtype: Any, where: str) -> np.ndarray:
+    """`a` as `dtype`, refusing lossy kinds (float into int) and out-of-range integers."""
+    a = np.asarray(a)
+    dt = np.dtype(dtype)
+    if a.dtype == dt:
+        return a
+    ok = a.dtype.kind in ("biu" if dt.kind in "iu" else "biuf")
+    if ok and dt.kind in "iu" and a.size and a.dtype.kind != "b":
+        info = np.iinfo(dt)
+        ok = info.min <= int(a.min()) and int(a.max()) <= info.max
+    if not ok:
+        raise SchemaError(f"{where}: expected dtype {dt}, found {a.dtype} (cannot convert safely)")
+    return a.astype(dt)
+
+
+def _put_large(g: h5py.Group, name: str, src: Any, dtype: Any, chunk_rows: int) -> None:
+    shape = tuple(int(s) for s in src.shape)
+    row_bytes = max(1, int(np.prod(shape[1:], dtype=np.int64)) * np.dtype(dtype).itemsize)
+    ds = g.create_dataset(name, shape=shape, dtype=dtype, chunks=(chunk_rows,) + shape[1:],
+                          maxshape=(None,) + shape[1:], **_GZIP)
+    for start, block in _blocks(src, max(1, _COPY_BYTES // row_bytes)):
+        ds[start:start + len(block)] = _cast(block, dtype, ds.name)
+
+
+def _put(g: h5py.Group, name: str, a: Any, dtype: Any) -> None:
+    g.create_dataset(name, data=_cast(a, dtype, f"{g.name.rstrip('/')}/{name}"))
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (Path, datetime.datetime)):
+        return str(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+
+def _check_sorted(t: Any, where: str) -> None:
+    last = None
+    for start, tc in _blocks(t, CHECK_ROWS):
+        seq = tc if last is None else np.concatenate(([last], tc))
+        bad = np.flatnonzero(seq[1:] < seq[:-1])
+        if bad.size:
+            offset = start if last is None else start - 1
+            raise SchemaError(f"{where}: not sorted (first decrease at index {offset + int(bad[0]) + 1})")
+        if len(tc):
+            last = tc[-1]
+
+
+def write(scene: Scene, path: str | os.PathLike) -> Path:
+    """Write `scene` to `path` atomically (temporary file beside it, then rename); returns the path.
+
+    Raises SchemaError (the target untouched) if the scene breaks the schema.
+    """
+    path = Path(path)
+    _check_sorted(scene.events.t, "/events/t")
+    try:
+        config = json.dumps(scene.config or {}, sort_keys=True, default=_json_default)
+    except (TypeError, ValueError) as e:
+        raise SchemaError(f"/: config is not JSON serialisable ({e})") from None
+    created = scene.created or datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+    try:
+        with h5py.File(tmp, "w") as f:
+            _write_contents(f, scene, config, created)
+        validate(tmp, require_complete=False)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _write_contents(f: h5py.File, s: Scene, config: str, created: str) -> None:
+    f.attrs.update(format=FORMAT, version=VERSION, source=str(s.source), name=str(s.name),
+                   created=created, config=config)
+    if s.bounds is not None:
+        f.attrs["bounds"] = _cast(s.bounds, np.float64, "/")
+    cam = f.create_group("camera")
+    cam.attrs["width"], cam.attrs["height"] = int(s.camera.width), int(s.camera.height)
+    if s.camera.background is not None:
+        cam.attrs["background"] = _cast(s.camera.background, np.float64, "/camera")
+    if s.camera.K is not None:
+        _put(cam, "K", s.camera.K, np.float64)
+    if s.camera.K is not None or np.any(np.asarray(s.camera.distortion) != 0):
+        _put(cam, "distortion", s.camera.distortion, np.float64)
+    ev = f.create_group("events")
+    for name, dt in _EVENT_DTYPES:
+        _put_large(ev, name, getattr(s.events, name), dt, max(1, min(EVENT_CHUNK, len(s.events))))
+    sn = s.sensor
+    ev.attrs.update(pos_threshold=float(sn.pos_threshold), neg_threshold=float(sn.neg_threshold),
+                    color_filter=str(sn.color_filter), refractory_us=sn.refractory_us)
+    if sn.log_knee is not None:
+        ev.attrs["log_knee"] = float(sn.log_knee)
+    for group, items in _PARTS.items():
+        part = getattr(s, group)
+        g = None if part is None else f.create_group(group)
+        for name, dt, _, large, _ in items if part is not None else ():
+            if getattr(part, name) is not None:
+                if large:
+                    _put_large(g, name, getattr(part, name), dt, 1)
+                else:
+                    _put(g, name, getattr(part, name), dt)
+
+
+# -------------------------------------------------------------------------------------- validate
+
+@contextmanager
+def _open(path: str | os.PathLike) -> Iterator[h5py.File]:
+    p = Path(path)
+    if not p.is_file():
+        raise SchemaError(f"{p}: no such file" if not p.exists() else f"{p}: not a file")
+    try:
+        f = h5py.File(p, "r")
+    except (OSError, RuntimeError) as e:
+        raise SchemaError(f"{p}: not a readable HDF5 file ({e})") from None
+    try:
+        with f:
+            yield f
+    except (OSError, RuntimeError) as e:
+        raise SchemaError(f"{p}: cannot read HDF5 data; the file may be truncated or corrupt ({e})") from None
+
+
+def _str(v: Any) -> str | None:
+    if isinstance(v, (bytes, np.bytes_)):
+        return v.decode("utf-8", "replace")
+    return str(v) if isinstance(v, (str, np.str_)) else None
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def _real(obj: h5py.HLObject, key: str, where: str, low: float, strict: bool) -> float:
+    if key not in obj.attrs:
+        raise SchemaError(f"{where}: missing attr {key}")
+    v = obj.attrs[key]
+    if not (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))) \
+            or not np.isfinite(v) or (v <= low if strict else v < low):
+        raise SchemaError(f"{where}: attr {key} must be a finite number {'>' if strict else '>='} {low}, found {v!r}")
+    return float(v)
+
+
+def _shape(path: str, found: tuple, expected: tuple, dims: dict) -> None:
+    new: dict = {}
+    ok = len(found) == len(expected)
+    for got, want in zip(found, expected) if ok else ():
+        if isinstance(want, str):
+            bound = dims.get(want, new.get(want))
+            if bound is None:
+                new[want] = got
+            ok = ok and (bound is None or bound == got)
+        else:
+            ok = ok and got == want
+    if not ok:
+        shown = [f"{w}={dims[w]}" if isinstance(w, str) and w in dims else str(w) for w in expected]
+        text = "(" + ", ".join(shown) + ("," if len(shown) == 1 else "") + ")"
+        raise SchemaError(f"{path}: expected shape {text}, found {tuple(found)}")
+    dims.update(new)
+
+
+def _ds(f: h5py.File, path: str, dtype: Any, shape: tuple, dims: dict) -> h5py.Dataset:
+    if path not in f:
+        raise SchemaError(f"{path}: missing")
+    ds = f[path]
+    if not isinstance(ds, h5py.Dataset):
+        raise SchemaError(f"{path}: expected a dataset, found a group")
+    want = np.dtype(dtype)
+    if ds.dtype.kind != want.kind or ds.dtype.itemsize != want.itemsize:
+        raise SchemaError(f"{path}: expected dtype {want}, found {ds.dtype}")
+    _shape(path, ds.shape, shape, dims)
+    return ds
+
+
+def _finite(a: np.ndarray, path: str) -> None:
+    bad = np.argwhere(~np.isfinite(a))
+    if len(bad):
+        raise SchemaError(f"{path}: non-finite value at index {list(map(int, bad[0]))}")
+
+
+def _pair(f: h5py.File, a: str, b: str) -> bool:
+    """True if both exist; SchemaError naming the missing one if only one does."""
+    ha, hb = a in f, b in f
+    if ha != hb:
+        raise SchemaError(f"{b if ha else a}: missing ({a if ha else b} is present; they come together)")
+    return ha
+
+
+def validate(source: str | os.PathLike | h5py.File, require_complete: bool = True) -> None:
+    """Raise SchemaError (message starting with the path inside the file) if the file breaks the schema.
+
+    require_complete=False accepts an events-only file (camera width/height, events, sensor attrs).
+    """
+    if isinstance(source, h5py.Group):
+        try:
+            return _validate(source.file, require_complete)
+        except (OSError, RuntimeError) as e:
+            raise SchemaError(f"{source.file.filename}: cannot read HDF5 data ({e})") from None
+    with _open(source) as f:
+        _validate(f, require_complete)
+
+
+def _validate(f: h5py.File, complete: bool) -> None:
+    fmt = _str(f.attrs.get("format"))
+    if fmt != FORMAT:
+        raise SchemaError(f"/: attr format is {fmt!r}, expected {FORMAT!r} (not an ev3dgs scene file)"
+                          if fmt is not None else "/: missing attr format (not an ev3dgs scene file)")
+    ver = f.attrs.get("version")
+    if not _is_int(ver):
+        raise SchemaError(f"/: attr version must be an integer, found {ver!r}")
+    if ver > VERSION:
+        raise SchemaError(f"/: schema version {int(ver)} is newer than this reader ({VERSION})")
+    if ver < 1:
+        raise SchemaError(f"/: schema version {int(ver)} is not valid")
+    for key in ("source", "name", "created", "config"):
+        if key in f.attrs and _str(f.attrs[key]) is None:
+            raise SchemaError(f"/: attr {key} must be text, found {f.attrs[key]!r}")
+    if "config" in f.attrs:
+        try:
+            config = json.loads(_str(f.attrs["config"]))
+        except ValueError as e:
+            raise SchemaError(f"/: attr config is not valid JSON ({e})") from None
+        if not isinstance(config, dict):
+            raise SchemaError(f"/: attr config must be a JSON object, found {type(config).__name__}")
+    if "bounds" in f.attrs:
+        b = np.asarray(f.attrs["bounds"])
+        if b.shape != (2, 3) or b.dtype.kind not in "iuf" or not np.all(np.isfinite(b)) or np.any(b[0] > b[1]):
+            raise SchemaError(f"/: attr bounds must be finite (2, 3) [min, max] with min <= max, found {b!r}")
+
+    if "camera" not in f:
+        raise SchemaError("/camera: missing")
+    cam = f["camera"]
+    for key in ("width", "height"):
+        v = cam.attrs.get(key)
+        if not _is_int(v) or v <= 0:
+            raise SchemaError(f"/camera: attr {key} must be a positive integer, found {v!r}")
+    W, H = int(cam.attrs["width"]), int(cam.attrs["height"])
+    if "background" in cam.attrs:
+        bg = np.asarray(cam.attrs["background"])
+        if bg.shape != (3,) or bg.dtype.kind not in "iuf" or not np.all((bg >= 0) & (bg <= 1)):
+            raise SchemaError(f"/camera: attr background must be 3 floats in [0, 1], found {bg!r}")
+    if complete or "/camera/K" in f:
+        _finite(_ds(f, "/camera/K", np.float64, (3, 3), {})[()], "/camera/K")
+    if complete or "/camera/distortion" in f:
+        _finite(_ds(f, "/camera/distortion", np.float64, (5,), {})[()], "/camera/distortion")
+
+    _validate_events(f, W, H)
+
+    for group, items in _PARTS.items():
+        if group not in f and not (complete and group == "train"):
+            continue
+        dims: dict = {"H": H, "W": W}
+        if group == "train":
+            _pair(f, "/train/poses", "/train/pose_t")
+            _pair(f, "/train/sharp", "/train/sharp_poses")
+        for name, dt, shape, _, finite in items:
+            path = f"/{group}/{name}"
+            if path in _OPTIONAL and path not in f:
+                continue
+            ds = _ds(f, path, dt, shape, dims)
+            if finite:
+                _finite(ds[()], path)
+    if "train" in f:
+        _validate_times(f)
+
+
+def _validate_times(f: h5py.File) -> None:
+    exp = f["/train/exposure"][()]
+    bad = np.flatnonzero(exp[:, 0] >= exp[:, 1])
+    if bad.size:
+        i = int(bad[0])
+        raise SchemaError(f"/train/exposure: view {i} has start {exp[i, 0]} >= end {exp[i, 1]}")
+    if "/train/pose_t" in f:
+        pt = f["/train/pose_t"][()]
+        if pt.shape[1] < 1:
+            raise SchemaError("/train/poses: expected at least one pose sample per view, found S=0")
+        out = np.argwhere((pt < exp[:, :1]) | (pt > exp[:, 1:]))
+        if len(out):
+            n, s = map(int, out[0])
+            raise SchemaError(f"/train/pose_t: sample [{n}, {s}] at t={pt[n, s]} is outside the "
+                              f"exposure [{exp[n, 0]}, {exp[n, 1]}] of view {n}")
+
+
+def _validate_events(f: h5py.File, W: int, H: int) -> None:
+    if "events" not in f:
+        raise SchemaError("/events: missing")
+    dims: dict = {}
+    ds = {name: _ds(f, f"/events/{name}", dt, ("E",), dims) for name, dt in _EVENT_DTYPES}
+    ev = f["events"]
+    _real(ev, "pos_threshold", "/events", 0.0, True)
+    _real(ev, "neg_threshold", "/events", 0.0, True)
+    _real(ev, "refractory_us", "/events", 0.0, False)
+    if "log_knee" in ev.attrs:
+        _real(ev, "log_knee", "/events", 0.0, False)
+    cf = _str(ev.attrs.get("color_filter"))
+    if cf not in COLOR_FILTERS:
+        raise SchemaError(f"/events: attr color_filter must be one of {COLOR_FILTERS}, found {cf!r}")
+    _check_sorted(ds["t"], "/events/t")
+    for start in range(0, dims["E"], CHECK_ROWS):
+        sl = slice(start, start + CHECK_ROWS)
+        p = ds["p"][sl]
+        bad = np.flatnonzero((p != 1) & (p != -1))
+        if bad.size:
+            raise SchemaError(f"/events/p: value {p[bad[0]]} at index {start + int(bad[0])} is not +1 or -1")
+        for name, limit, what in (("x", W, "width"), ("y", H, "height")):
+            v = ds[name][sl]
+            bad = np.flatnonzero(v >= limit)
+            if bad.size:
+                raise SchemaError(f"/events/{name}: value {v[bad[0]]} at index {start + int(bad[0])} "
+                                  f"is out of range ({what} {limit})")
+
+
+# ------------------------------------------------------------------------------------------ read
+
+def read(path: str | os.PathLike, require_complete: bool = True) -> Scene:
+    """Validate, then load the scene: large arrays as LazyArray, events as LazyEvents, the rest numpy."""
+    path = Path(path).absolute()
+    with _open(path) as f:
+        _validate(f, require_complete)
+
+        def lazy(name: str) -> LazyArray:
+            return LazyArray(path, name, f[name].shape, f[name].dtype)
+
+        def get(name: str) -> np.ndarray | None:
+            return f[name][()] if name in f else None
+
+        cam = f["camera"]
+        bg = cam.attrs.get("background")
+        camera = Camera(int(cam.attrs["width"]), int(cam.attrs["height"]), get("/camera/K"),
+                        np.zeros(5) if "/camera/distortion" not in f else get("/camera/distortion"),
+                        None if bg is None else tuple(float(v) for v in bg))
+        ea = f["events"].attrs
+        refr = ea["refractory_us"]
+        sensor = EventSensor(float(ea["pos_threshold"]), float(ea["neg_threshold"]), _str(ea["color_filter"]),
+                             int(refr) if _is_int(refr) else float(refr),
+                             float(ea["log_knee"]) if "log_knee" in ea else None)
+        events = LazyEvents(*(lazy(f"/events/{n}") for n, _ in _EVENT_DTYPES))
+        parts = {group: _CLASSES[group](*(None if f"/{group}/{n}" not in f else
+                                          lazy(f"/{group}/{n}") if large else get(f"/{group}/{n}")
+                                          for n, _, _, large, _ in items))
+                 for group, items in _PARTS.items() if group in f}
+        bounds = np.asarray(f.attrs["bounds"], np.float64) if "bounds" in f.attrs else None
+        return Scene(name=_str(f.attrs.get("name", "")) or "", source=_str(f.attrs.get("source", "")) or "",
+                     camera=camera, events=events, sensor=sensor, **parts, bounds=bounds,
+                     config=json.loads(_str(f.attrs.get("config", "{}"))),
+                     created=_str(f.attrs.get("created", "")) or "")
