@@ -194,3 +194,18 @@ def test_report_names_only_configured_effects():
     assert set(full.effects) == {"lowpass", "threshold_mismatch", "leak", "shot_noise", "refractory"}
     assert {"lowpass", "threshold_mismatch", "leak", "shot_noise"} <= set(full.seconds)
     assert full.frames == 2 and full.events >= 0
+
+
+def test_restart_reinitialises_without_events_but_keeps_the_sensor():
+    cfg = DVSConfig(threshold_mismatch=ThresholdMismatch())
+    sim = DVSSimulator(3, 3, cfg, seed=1)
+    c_on = sim.c_on.copy()
+    sim.feed(np.full((2, 3, 3), 0.3), np.array([0, 100]))
+    sim.restart()
+    ev = sim.feed(np.full((2, 3, 3), 3.0), np.array([200, 300]))  # a jump to a new view: no events
+    assert len(ev) == 0 and np.array_equal(sim.c_on, c_on)
+    frames, _ = ramp(1.1, 2, shape=(3, 3))
+    ev = sim.feed(frames * 6, np.array([400, 10_400]))
+    assert len(ev) > 0 and ev.t.min() > 400
+    with pytest.raises(InputError):
+        sim.feed(np.ones((1, 3, 3)), np.array([10_000]))

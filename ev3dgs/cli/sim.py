@@ -60,6 +60,47 @@ def _blur(args) -> int:
     return 0
 
 
+def _size(text: str) -> tuple[int, int]:
+    import argparse
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH such as 400x300, got {text!r}") from None
+    return w, h
+
+
+def _make_dataset(args) -> int:
+    from ..sim.dataset import make_dataset
+    from ..sim.scenes import load_scene, resolve_render
+
+    spec = load_scene(args.scene)
+    w, h = args.size if args.size else (None, None)
+    render = resolve_render(spec, args.quick, width=w, height=h, views=args.views, test_views=args.test_views,
+                            subframes=args.subframes, exposure_ms=args.exposure_ms, samples=args.samples)
+    stats = make_dataset(spec, render, args.out, blend=args.blend, workers=args.workers, seed=args.seed,
+                         quiet=args.quiet, keep_cache=args.keep_cache)
+    if not args.quiet:
+        sec = stats.seconds
+        print(f"{spec.name}: {render.views} views + {render.test_views} test views at {render.width}x{render.height}, "
+              f"{render.subframes} sub-frames, {stats.events} events ({stats.views_rendered} views rendered, "
+              f"{stats.views_cached} from cache); render {sec['render']:.1f} s, simulate {sec['simulate']:.2f} s, "
+              f"ISP {sec['isp']:.2f} s, write {sec['write']:.2f} s -> {stats.path}")
+    return 0
+
+
+def _list_scenes(args) -> int:
+    from ..sim.scenes import builtin_scenes, load_scene
+
+    names = builtin_scenes()
+    for n in names:
+        print(n)
+    print()
+    for n in names:
+        print(f"{n}: {load_scene(n).description}")
+    return 0
+
+
 def build_parser():
     p = parser("ev3dgs-sim", "Simulate event cameras: events and raw-domain motion blur from frames.")
     sub = subparsers(p)
@@ -77,6 +118,24 @@ def build_parser():
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=_blur)
+    m = sub.add_parser("make-dataset", help="render a scene in Blender -> events + blurry frames -> scene.h5")
+    m.add_argument("--scene", required=True, help="built-in scene name (see list-scenes) or a scene .toml")
+    m.add_argument("--blend", help="render this .blend (an object near the origin) with our cameras")
+    m.add_argument("--out", required=True, help="output scene .h5 (written atomically)")
+    m.add_argument("--views", type=int, help="training views")
+    m.add_argument("--test-views", type=int, help="sharp novel test views")
+    m.add_argument("--size", type=_size, help="image size WxH")
+    m.add_argument("--subframes", type=int, help="sub-frames rendered per exposure (default 17)")
+    m.add_argument("--exposure-ms", type=float, help="exposure time (default 100 ms)")
+    m.add_argument("--samples", type=int, help="Cycles samples per pixel")
+    m.add_argument("--workers", type=int, default=1, help="Blender worker processes rendering in parallel")
+    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--quick", action="store_true", help="small images, few views and samples (minutes on 2 cores)")
+    m.add_argument("--keep-cache", action="store_true", help="keep the rendered views beside the output")
+    m.add_argument("--quiet", action="store_true")
+    m.set_defaults(func=_make_dataset)
+    ls = sub.add_parser("list-scenes", help="the built-in scenes: names first, then descriptions")
+    ls.set_defaults(func=_list_scenes)
     return p
 
 

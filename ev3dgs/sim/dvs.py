@@ -108,10 +108,20 @@ class DVSSimulator:
             self.seconds["refractory"] += 0.0
         # state
         self.t_prev: int | None = None
+        self._restart = False
         self.ref = np.zeros(P)
         self.signal_prev = self.log_prev = self.intensity_prev = None
         self._scratch = np.empty(P, np.int64)
         self._buf = (np.empty(P, np.int64), np.empty(P, np.uint16), np.empty(P, np.uint16), np.empty(P, np.int8))
+
+    def restart(self) -> None:
+        """Forget the signal (the camera jumped, e.g. to the next view of a dataset): the next frame fed
+        initialises the reference again and emits nothing. The sensor itself (threshold pattern, leak
+        rates, noise streams) stays, and time must keep increasing."""
+        self.signal_prev = self.log_prev = self.intensity_prev = None
+        if self.blocked_until.shape[0]:
+            self.blocked_until[:] = NEVER
+        self._restart = True
 
     def _tick(self, key: str, t_start: float) -> float:
         now = time.perf_counter()
@@ -158,7 +168,8 @@ class DVSSimulator:
             log_i = safe_log(intensity, knee)
             t = self._tick("log", t)
             self.frames += 1
-            if self.t_prev is None:  # the first frame only initialises
+            if self.t_prev is None or self._restart:  # the first frame only initialises
+                self._restart = False
                 self.signal_prev = self.log_prev = log_i
                 self.intensity_prev = intensity
                 self.ref = log_i.astype(np.float64)  # the reference accumulates: keep it in float64

@@ -1,0 +1,122 @@
+"""Pose conventions and SE(3) helpers.
+
+Poses are 4x4 float64 camera-to-world matrices with OpenCV camera axes (x right, y down, z forward). World
+coordinates of synthetic scenes are Blender's (z up). Blender cameras look along their -z with y up, so
+    c2w_opencv = c2w_blender @ diag(1, -1, -1, 1)       (and the same matrix converts back).
+Intrinsics K follow OpenCV's pixel convention: the centre of the top-left pixel is (0, 0), so a centred
+principal point is ((W - 1) / 2, (H - 1) / 2).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+BLENDER_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def blender_to_opencv(c2w: np.ndarray) -> np.ndarray:
+    return np.asarray(c2w, dtype=np.float64) @ BLENDER_TO_OPENCV
+
+
+def opencv_to_blender(c2w: np.ndarray) -> np.ndarray:
+    return np.asarray(c2w, dtype=np.float64) @ BLENDER_TO_OPENCV
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """OpenCV camera-to-world at `eye` looking at `target`, image up roughly along `up`."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:  # looking along `up`: pick any perpendicular
+        x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, eye
+    return m
+
+
+def intrinsics(width: int, height: int, fov_x_deg: float) -> np.ndarray:
+    fx = 0.5 * width / np.tan(np.deg2rad(fov_x_deg) / 2)
+    return np.array([[fx, 0.0, (width - 1) / 2], [0.0, fx, (height - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def project(K: np.ndarray, c2w: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """World points (N, 3) -> pixel coordinates (N, 2) (OpenCV convention) and depth (N,)."""
+    w2c = np.linalg.inv(c2w)
+    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+    uv = pc @ np.asarray(K).T
+    return uv[:, :2] / uv[:, 2:3], pc[:, 2]
+
+
+def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vectors (..., 3) -> matrices (..., 3, 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    theta = np.linalg.norm(v, axis=-1)[..., None, None]
+    k = np.zeros(v.shape[:-1] + (3, 3))
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    k = k - np.swapaxes(k, -1, -2)
+    small = theta < 1e-8
+    s = np.where(small, 1.0, np.sin(theta) / np.where(small, 1.0, theta))
+    c = np.where(small, 0.5, (1 - np.cos(theta)) / np.where(small, 1.0, theta**2))
+    return np.eye(3) + s * k + c * (k @ k)
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) -> unit quaternion (w, x, y, z), w >= 0."""
+    m = np.asarray(R, dtype=np.float64)
+    t = np.trace(m)
+    if t > 0:
+        s = 2 * np.sqrt(t + 1)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2 * np.sqrt(1 + m[i, i] - m[j, j] - m[k, k])
+        q = np.empty(4)
+        q[0] = (m[k, j] - m[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (m[j, i] + m[i, j]) / s
+        q[1 + k] = (m[k, i] + m[i, k]) / s
+    q = np.asarray(q, dtype=np.float64)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> np.ndarray:
+    q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
+    d = float(np.dot(q0, q1))
+    if d < 0:
+        q1, d = -q1, -d
+    if d > 0.9995:
+        q = q0 + a * (q1 - q0)
+        return q / np.linalg.norm(q)
+    th = np.arccos(np.clip(d, -1, 1))
+    return (np.sin((1 - a) * th) * q0 + np.sin(a * th) * q1) / np.sin(th)
+
+
+def interpolate_pose(poses: np.ndarray, pose_t: np.ndarray, t: float) -> np.ndarray:
+    """Camera-to-world at time t from samples (S, 4, 4) at sorted times (S,): slerp + lerp between the two
+    neighbouring samples, clamped at the ends; exact at the sample times."""
+    poses, pose_t = np.asarray(poses, float), np.asarray(pose_t)
+    if len(poses) == 1 or t <= pose_t[0]:
+        return poses[0].copy()
+    if t >= pose_t[-1]:
+        return poses[-1].copy()
+    j = int(np.searchsorted(pose_t, t, side="right")) - 1
+    a = (t - pose_t[j]) / (pose_t[j + 1] - pose_t[j])
+    if a == 0:
+        return poses[j].copy()
+    out = np.eye(4)
+    out[:3, :3] = quat_to_matrix(slerp(matrix_to_quat(poses[j][:3, :3]), matrix_to_quat(poses[j + 1][:3, :3]), a))
+    out[:3, 3] = (1 - a) * poses[j][:3, 3] + a * poses[j + 1][:3, 3]
+    return out
