@@ -225,7 +225,7 @@ def _ficus(p, rng):
     # stem: a wiggly polyline from the soil to the top
     pts = [Vector((0, 0, -0.6))]
     for k in range(1, 9):
-        pts.append(Vector((rng.uniform(-0.06, 0.06), rng.uniform(-0.06, 0.06), -0.6 + 1.5 * k / 8)))
+        pts.append(Vector((rng.uniform(-0.06, 0.06), rng.uniform(-0.06, 0.06), -0.6 + 1.45 * k / 8)))
     for k in range(8):
         stem.cylinder(pts[k], pts[k + 1], 0.035 - 0.0025 * k, 0.035 - 0.0025 * (k + 1), segments=10)
         stem.sphere(pts[k + 1], 0.035 - 0.0025 * (k + 1), subdiv=1)
@@ -239,7 +239,7 @@ def _ficus(p, rng):
         tip = base + direc * length
         if tip.xy.length > 0.85:
             tip.xy *= 0.85 / tip.xy.length
-        tip.z = min(tip.z, 1.0)
+        tip.z = min(tip.z, 0.92)
         stem.cylinder(base, tip, rng.uniform(0.008, 0.013), 0.004, segments=6)
         for _ in range(rng.randint(3, 6)):
             s = rng.uniform(0.25, 1.0)
@@ -261,7 +261,7 @@ def _ficus(p, rng):
 def _materials(p, rng):
     ts = p["texture_scale"]
     plate = _Geo()
-    plate.box((0, 0, -0.43), (1.5, 1.5, 0.1))
+    plate.cylinder((0, 0, -0.48), (0, 0, -0.38), 0.9, segments=64)
     plate.finish("plate", _noise_material("plate", rng, (0.03, 0.03, 0.05), (0.9, 0.85, 0.7), 9.0 * ts,
                                           roughness=0.7))
     kinds = [("chrome", dict(metallic=1.0, roughness=0.04, color=(0.95, 0.95, 0.95))),
@@ -272,14 +272,14 @@ def _materials(p, rng):
              ("blue_gloss", dict(metallic=0.0, roughness=0.05, color=(0.03, 0.12, 0.6), coat=1.0)),
              ("steel", dict(metallic=1.0, roughness=0.3, color=(0.6, 0.62, 0.65)))]
     n = max(1, p["detail"])
-    slots = [(math.cos(2 * math.pi * i / n + 0.3) * 0.45, math.sin(2 * math.pi * i / n + 0.3) * 0.45)
+    slots = [(math.cos(2 * math.pi * i / n + 0.3) * 0.6, math.sin(2 * math.pi * i / n + 0.3) * 0.6)
              for i in range(n)] if n > 1 else [(0.0, 0.0)]
     for i, (x, y) in enumerate(slots):
         name, spec = kinds[i % len(kinds)]
         mat = (_noise_material(f"diffuse_{i}", rng, (0.05, 0.15, 0.02), (0.95, 0.9, 0.3), 12.0 * ts)
                if spec is None else _material(f"{name}_{i}", **spec)[0])
         geo = _Geo()
-        r = rng.uniform(0.16, 0.24)
+        r = rng.uniform(0.14, 0.2)
         if i % 3 == 2:  # torus standing up
             rot = Matrix.Rotation(rng.uniform(0, math.pi), 4, "Z") @ Matrix.Rotation(math.pi / 2, 4, "X")
             geo.torus((x, y, -0.38 + r + 0.06), r, 0.06, rot=rot)
@@ -287,7 +287,7 @@ def _materials(p, rng):
             geo.uvsphere((x, y, -0.38 + r), r)
         geo.finish(f"obj_{i}_{name}", mat, smooth=True)
     centre = _Geo()
-    centre.uvsphere((0, 0, -0.38 + 0.3), 0.3)
+    centre.uvsphere((0, 0, -0.38 + 0.3), 0.3)  # mirror ball in the middle
     centre.finish("obj_centre", _material("mirror", metallic=1.0, roughness=0.02, color=(0.9, 0.9, 0.92))[0],
                   smooth=True)
     return {"lights": _studio(p["light_strength"])}
@@ -311,7 +311,7 @@ def _lowlight(p, rng):
                      scale=(rng.uniform(0.8, 1.4), rng.uniform(0.7, 1.2), 0.7), rot=rot, subdiv=2)
     rocks.finish("stones", _noise_material("stone", rng, (0.1, 0.1, 0.1), (0.9, 0.85, 0.8), 20.0 * ts))
     ls = p["light_strength"]
-    return {"lights": [_area(12.0 * ls, (1.5, -1.2, 1.6), size=0.3, kind="POINT")],
+    return {"lights": [_area(45.0 * ls, (1.5, -1.2, 1.6), size=0.3, kind="POINT")],
             "suggested_background": [0.004, 0.004, 0.005]}
 
 
