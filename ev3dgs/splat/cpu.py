@@ -1,0 +1,280 @@
+"""The `cpu` backend: exact tile rasterization with hand-written forward and backward kernels (numba).
+
+Same semantics and constants as `reference` (front-to-back, alpha = min(0.99, o*exp(-sigma)), skip
+sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4), but:
+
+* binning: Gaussians are depth-sorted once, then counted and placed per 16x16 tile (a counting sort), so
+  every tile's list is already in depth order. Nothing is dropped: a Gaussian goes to every tile its
+  (opacity-aware, exact) radius touches, so the per-tile lists hold every Gaussian that can reach a pixel.
+* forward: per tile, Gaussians outer and the tile's pixels inner; per pixel it keeps T and the index after
+  the last Gaussian it composited. Tiles run in parallel (numba prange) when threads > 1.
+* backward: per tile, Gaussians in reverse depth order; T is recovered by dividing by (1 - alpha) >= 0.01,
+  the colour behind each Gaussian is accumulated, and gradients go to a per-(tile, Gaussian) buffer that a
+  serial pass sums per Gaussian. No atomics, and the result does not depend on the thread count.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from numba import njit, prange
+
+TILE = 16
+ALPHA_MAX = 0.99
+ALPHA_MIN = 1.0 / 255.0
+T_MIN = 1e-4
+
+
+@njit(cache=True, nogil=True)
+def _bin(means2d, radii, order, width, height, tiles_x, tiles_y):
+    """Counting sort of (tile, Gaussian) pairs; `order` is the depth order of the Gaussians.
+    Returns (offsets (n_tiles+1,), ids (M,)): tile t's Gaussians, front to back, are ids[offsets[t]:offsets[t+1]]."""
+    n_tiles = tiles_x * tiles_y
+    counts = np.zeros(n_tiles + 1, np.int64)
+    rects = np.empty((order.shape[0], 4), np.int64)
+    for j in range(order.shape[0]):
+        g = order[j]
+        r = radii[g]
+        mx, my = means2d[g, 0], means2d[g, 1]
+        x0 = max(0, int(np.ceil(mx - r)))
+        x1 = min(width - 1, int(np.floor(mx + r)))
+        y0 = max(0, int(np.ceil(my - r)))
+        y1 = min(height - 1, int(np.floor(my + r)))
+        if x0 > x1 or y0 > y1:
+            rects[j, 0] = 1
+            rects[j, 1] = 0
+            continue
+        tx0, tx1, ty0, ty1 = x0 // TILE, x1 // TILE, y0 // TILE, y1 // TILE
+        rects[j, 0], rects[j, 1], rects[j, 2], rects[j, 3] = tx0, tx1, ty0, ty1
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                counts[ty * tiles_x + tx + 1] += 1
+    for t in range(n_tiles):
+        counts[t + 1] += counts[t]
+    ids = np.empty(counts[n_tiles], np.int64)
+    fill = counts[:n_tiles].copy()
+    for j in range(order.shape[0]):
+        if rects[j, 0] > rects[j, 1]:
+            continue
+        for ty in range(rects[j, 2], rects[j, 3] + 1):
+            for tx in range(rects[j, 0], rects[j, 1] + 1):
+                t = ty * tiles_x + tx
+                ids[fill[t]] = order[j]
+                fill[t] += 1
+    return counts, ids
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, background, width, height,
+             tiles_x, image, t_final, last):
+    D = colors.shape[1]
+    n_tiles = offsets.shape[0] - 1
+    for tile in prange(n_tiles):
+        ty, tx = tile // tiles_x, tile % tiles_x
+        x0, y0 = tx * TILE, ty * TILE
+        w = min(TILE, width - x0)
+        h = min(TILE, height - y0)
+        P = w * h
+        T = np.ones(P, image.dtype)
+        C = np.zeros((P, D), image.dtype)
+        stop = np.zeros(P, np.int64)
+        done = np.zeros(P, np.bool_)
+        n_done = 0
+        start, end = offsets[tile], offsets[tile + 1]
+        for k in range(start, end):
+            if n_done == P:
+                break
+            g = ids[k]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            o = opacities[g]
+            smax = sigma_max[g]
+            # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
+            r = radii[g]
+            bx0 = max(x0, int(np.ceil(mx - r)))
+            bx1 = min(x0 + w - 1, int(np.floor(mx + r)))
+            by0 = max(y0, int(np.ceil(my - r)))
+            by1 = min(y0 + h - 1, int(np.floor(my + r)))
+            for py in range(by0, by1 + 1):
+                dy = py - my
+                for px in range(bx0, bx1 + 1):
+                    p = (py - y0) * w + (px - x0)
+                    if done[p]:
+                        continue
+                    dx = px - mx
+                    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < 0.0 or sigma > smax:  # beyond smax: alpha < 1/255, no exp needed
+                        continue
+                    alpha = min(ALPHA_MAX, o * np.exp(-sigma))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    nT = T[p] * (1.0 - alpha)
+                    if nT < T_MIN:
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    wgt = alpha * T[p]
+                    for d in range(D):
+                        C[p, d] += colors[g, d] * wgt
+                    T[p] = nT
+                    stop[p] = k + 1
+        for p in range(P):
+            px, py = x0 + p % w, y0 + p // w
+            for d in range(D):
+                image[py, px, d] = C[p, d] + T[p] * background[d]
+            t_final[py, px] = T[p]
+            last[py, px] = stop[p]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, background, width, height,
+              tiles_x, t_final, last, grad_image, grad_alpha, per_pair):
+    """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...]."""
+    D = colors.shape[1]
+    n_tiles = offsets.shape[0] - 1
+    for tile in prange(n_tiles):
+        ty, tx = tile // tiles_x, tile % tiles_x
+        x0, y0 = tx * TILE, ty * TILE
+        w = min(TILE, width - x0)
+        h = min(TILE, height - y0)
+        P = w * h
+        T = np.empty(P, t_final.dtype)
+        S = np.empty((P, D), t_final.dtype)
+        G = np.empty((P, D), t_final.dtype)
+        GA = np.empty(P, t_final.dtype)
+        TF = np.empty(P, t_final.dtype)
+        stop = np.empty(P, np.int64)
+        kmax = offsets[tile]
+        for p in range(P):
+            px, py = x0 + p % w, y0 + p // w
+            T[p] = t_final[py, px]
+            TF[p] = T[p]
+            stop[p] = last[py, px]
+            kmax = max(kmax, stop[p])
+            GA[p] = grad_alpha[py, px]
+            for d in range(D):
+                G[p, d] = grad_image[py, px, d]
+                S[p, d] = T[p] * background[d]
+        for k in range(kmax - 1, offsets[tile] - 1, -1):
+            g = ids[k]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            o = opacities[g]
+            gmx = gmy = ga = gb = gc = go = 0.0
+            smax = sigma_max[g]
+            r = radii[g]
+            bx0 = max(x0, int(np.ceil(mx - r)))
+            bx1 = min(x0 + w - 1, int(np.floor(mx + r)))
+            by0 = max(y0, int(np.ceil(my - r)))
+            by1 = min(y0 + h - 1, int(np.floor(my + r)))
+            for py in range(by0, by1 + 1):
+                dy = py - my
+                for px in range(bx0, bx1 + 1):
+                    p = (py - y0) * w + (px - x0)
+                    if k >= stop[p]:
+                        continue
+                    dx = px - mx
+                    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < 0.0 or sigma > smax:
+                        continue
+                    e = np.exp(-sigma)
+                    raw = o * e
+                    alpha = min(ALPHA_MAX, raw)
+                    if alpha < ALPHA_MIN:
+                        continue
+                    one_m = 1.0 - alpha
+                    Ti = T[p] / one_m            # transmittance in front of this Gaussian
+                    wgt = alpha * Ti
+                    cg = 0.0
+                    sg = 0.0
+                    for d in range(D):
+                        per_pair[k, 6 + d] += wgt * G[p, d]
+                        cg += colors[g, d] * G[p, d]
+                        sg += S[p, d] * G[p, d]
+                    # dL/dalpha: own colour, everything behind (S, incl. background), the alpha output
+                    d_alpha = Ti * cg - sg / one_m + GA[p] * TF[p] / one_m
+                    for d in range(D):
+                        S[p, d] += colors[g, d] * wgt
+                    T[p] = Ti
+                    if raw > ALPHA_MAX:         # clamped: no gradient to opacity or the footprint
+                        continue
+                    go += d_alpha * e
+                    d_sigma = -d_alpha * alpha
+                    gmx += -d_sigma * (a * dx + b * dy)
+                    gmy += -d_sigma * (c * dy + b * dx)
+                    ga += d_sigma * 0.5 * dx * dx
+                    gb += d_sigma * dx * dy
+                    gc += d_sigma * 0.5 * dy * dy
+            per_pair[k, 0] += gmx
+            per_pair[k, 1] += gmy
+            per_pair[k, 2] += ga
+            per_pair[k, 3] += gb
+            per_pair[k, 4] += gc
+            per_pair[k, 5] += go
+
+
+@njit(cache=True, nogil=True)
+def _reduce(ids, per_pair, n):
+    out = np.zeros((n, per_pair.shape[1]), per_pair.dtype)
+    for k in range(ids.shape[0]):
+        out[ids[k]] += per_pair[k]
+    return out
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy())
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, depths, radii, width, height, background):
+        dtype = colors.dtype
+        m, q, col, o = (_np(x.to(dtype)) for x in (means2d, conics, colors, opacities))
+        bg = _np(background.to(dtype))
+        r = _np(radii).astype(np.int64)
+        visible = np.flatnonzero(r > 0)
+        order = visible[np.argsort(_np(depths)[visible], kind="stable")]
+        tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+        offsets, ids = _bin(m, r, order, width, height, tiles_x, tiles_y)
+        # alpha >= 1/255 needs sigma <= ln(255 o): beyond that (plus a margin, so the exact alpha test still
+        # decides at the boundary) no exp is computed
+        with np.errstate(divide="ignore"):
+            smax = (np.log(np.maximum(o.astype(np.float64), 0.0) * 255.0) + 1e-6).astype(col.dtype)
+        image = np.empty((height, width, col.shape[1]), col.dtype)
+        t_final = np.empty((height, width), col.dtype)
+        last = np.empty((height, width), np.int64)
+        _forward(m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, image, t_final, last)
+        ctx.save_for_backward(means2d, conics, colors, opacities, background)
+        ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, t_final, last)
+        ctx.size = (width, height, tiles_x)
+        alpha = torch.from_numpy(1.0 - t_final)[..., None]
+        return torch.from_numpy(image), alpha
+
+    @staticmethod
+    def backward(ctx, grad_image, grad_alpha):
+        m, q, col, o, r, smax, bg, offsets, ids, t_final, last = ctx.arrays
+        width, height, tiles_x = ctx.size
+        gi = (np.zeros((height, width, col.shape[1]), col.dtype) if grad_image is None
+              else _np(grad_image).astype(col.dtype, copy=False))
+        ga = (np.zeros_like(t_final) if grad_alpha is None
+              else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
+        per_pair = np.zeros((len(ids), 6 + col.shape[1]), col.dtype)
+        _backward(m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, t_final, last, gi, ga, per_pair)
+        g = torch.from_numpy(_reduce(ids, per_pair, len(m)))
+        means2d, conics, colors, opacities, background = ctx.saved_tensors
+        grad_bg = None
+        if ctx.needs_input_grad[8]:
+            grad_bg = torch.from_numpy((gi * t_final[..., None]).sum(axis=(0, 1))).to(background.dtype)
+        return (g[:, 0:2].to(means2d.dtype), g[:, 2:5].to(conics.dtype), g[:, 6:].to(colors.dtype),
+                g[:, 5].to(opacities.dtype), None, None, None, None, grad_bg)
+
+
+def rasterize_cpu(means2d, conics, colors, opacities, depths, radii, width: int, height: int,
+                  background=None, threads: int | None = None):
+    """Same signature and result as reference.rasterize_reference: (image (H,W,D), alpha (H,W,1))."""
+    if background is None:
+        background = torch.zeros(colors.shape[1], dtype=colors.dtype)
+    if threads is not None:
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    return _RasterizeCPU.apply(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
+                               background.to(colors.dtype))

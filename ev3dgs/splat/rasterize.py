@@ -1,0 +1,89 @@
+"""One rasterization function over backends, in the spirit of gsplat's `rasterization()`.
+
+    image, alpha, meta = rasterization(means, quats, scales, opacities, colors, viewmat, K, width, height)
+
+means (N,3), quats (N,4) wxyz, scales (N,3) and opacities (N,) already activated; colors (N,D) or SH
+coefficients (N,K,3) with sh_degree; viewmat (4,4) world->camera (OpenCV axes); K (3,3) with the OpenCV
+pixel convention (pixel (x, y) is evaluated at exactly (x, y)). Returns image (H,W,D) (D+1 channels with
+render_mode="RGB+D": the last is the alpha-weighted depth, as gsplat's "D"), alpha (H,W,1), and meta with
+the projected `means2d` (whose .grad feeds densification), `radii`, `depths`, `width`, `height`.
+
+Backends: "reference" (plain torch, the test oracle), "cpu" (numba kernels, exact), "cuda" (gsplat, when
+CUDA and gsplat are available), "auto" (cuda for CUDA tensors when possible, else cpu).
+"""
+from __future__ import annotations
+
+import torch
+
+from ..errors import InputError
+from .project import project_gaussians
+from .sh import eval_sh
+
+BACKENDS = ("auto", "reference", "cpu", "cuda")
+
+
+def cuda_available() -> bool:
+    if not torch.cuda.is_available():
+        return False
+    try:
+        import gsplat  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+def _check(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree):
+    n = means.shape[0]
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise InputError(f"means must be (N, 3), got {tuple(means.shape)}")
+    for name, t, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)), ("opacities", opacities, (n,)),
+                           ("viewmat", viewmat, (4, 4)), ("K", K, (3, 3))):
+        if tuple(t.shape) != shape:
+            raise InputError(f"{name} must be {shape}, got {tuple(t.shape)}")
+    if colors.shape[0] != n or colors.ndim not in (2, 3):
+        raise InputError(f"colors must be (N, D) or SH (N, K, 3), got {tuple(colors.shape)}")
+    if colors.ndim == 3 and (sh_degree is None or colors.shape[1] < (sh_degree + 1) ** 2):
+        raise InputError("SH colours need sh_degree with (sh_degree + 1)**2 <= K")
+    if not (0 < width <= 16384 and 0 < height <= 16384):
+        raise InputError(f"impossible image size {width}x{height}")
+
+
+def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: int, height: int, *,
+                  sh_degree: int | None = None, near_plane: float = 0.01, far_plane: float = 1e10,
+                  eps2d: float = 0.3, background=None, render_mode: str = "RGB", backend: str = "auto",
+                  threads: int | None = None):
+    if backend not in BACKENDS:
+        raise InputError(f"unknown backend {backend!r} (one of {', '.join(BACKENDS)})")
+    if render_mode not in ("RGB", "RGB+D"):
+        raise InputError(f"render_mode must be 'RGB' or 'RGB+D', got {render_mode!r}")
+    _check(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree)
+    if backend == "auto":
+        backend = "cuda" if means.is_cuda and cuda_available() else "cpu"
+    if backend == "cuda":
+        from .cuda import rasterization_cuda
+
+        return rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                  sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
+                                  background=background, render_mode=render_mode)
+    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height,
+                             near=near_plane, far=far_plane, eps2d=eps2d)
+    if colors.ndim == 3:
+        campos = torch.linalg.inv(viewmat)[:3, 3]
+        colors = eval_sh(sh_degree, colors, means - campos)
+    if background is None:
+        background = torch.zeros(colors.shape[1], dtype=colors.dtype, device=colors.device)
+    if render_mode == "RGB+D":
+        colors = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], dim=1)
+        background = torch.cat([background, background.new_zeros(1)])
+    args = (proj.means2d, proj.conics, colors, opacities, proj.depths, proj.radii, width, height, background)
+    if backend == "reference":
+        from .reference import rasterize_reference
+
+        image, alpha = rasterize_reference(*args)
+    else:
+        from .cpu import rasterize_cpu
+
+        image, alpha = rasterize_cpu(*args, threads=threads)
+    meta = {"means2d": proj.means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
+            "width": width, "height": height, "n_cameras": 1}
+    return image, alpha, meta
