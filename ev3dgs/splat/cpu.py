@@ -66,8 +66,11 @@ def _bin(means2d, radii, order, width, height, tiles_x, tiles_y):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, background, width, height,
-             tiles_x, image, t_final, last):
+             tiles_x, image, t_final, last, consts):
     D = colors.shape[1]
+    # consts = (0.5, 1, ALPHA_MAX, ALPHA_MIN, T_MIN) in the input dtype: with float32 inputs the maths stays
+    # float32 (numba would promote to float64 on any Python float literal)
+    half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
     n_tiles = offsets.shape[0] - 1
     for tile in prange(n_tiles):
         ty, tx = tile // tiles_x, tile % tiles_x
@@ -77,6 +80,12 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
         P = w * h
         T = np.ones(P, image.dtype)
         C = np.zeros((P, D), image.dtype)
+        xs = np.empty(w, image.dtype)
+        ys = np.empty(h, image.dtype)
+        for i in range(w):
+            xs[i] = x0 + i
+        for i in range(h):
+            ys[i] = y0 + i
         stop = np.zeros(P, np.int64)
         done = np.zeros(P, np.bool_)
         n_done = 0
@@ -96,20 +105,20 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
             by0 = max(y0, int(np.ceil(my - r)))
             by1 = min(y0 + h - 1, int(np.floor(my + r)))
             for py in range(by0, by1 + 1):
-                dy = py - my
+                dy = ys[py - y0] - my
                 for px in range(bx0, bx1 + 1):
                     p = (py - y0) * w + (px - x0)
                     if done[p]:
                         continue
-                    dx = px - mx
-                    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < 0.0 or sigma > smax:  # beyond smax: alpha < 1/255, no exp needed
+                    dx = xs[px - x0] - mx
+                    sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < 0 or sigma > smax:  # beyond smax: alpha < 1/255, no exp needed
                         continue
-                    alpha = min(ALPHA_MAX, o * np.exp(-sigma))
-                    if alpha < ALPHA_MIN:
+                    alpha = min(amax, o * np.exp(-sigma))
+                    if alpha < amin:
                         continue
-                    nT = T[p] * (1.0 - alpha)
-                    if nT < T_MIN:
+                    nT = T[p] * (one - alpha)
+                    if nT < tmin:
                         done[p] = True
                         n_done += 1
                         continue
@@ -128,9 +137,11 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
 
 @njit(cache=True, nogil=True, parallel=True)
 def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, background, width, height,
-              tiles_x, t_final, last, grad_image, grad_alpha, per_pair):
+              tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts):
     """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...]."""
     D = colors.shape[1]
+    half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
+    zero = half - half
     n_tiles = offsets.shape[0] - 1
     for tile in prange(n_tiles):
         ty, tx = tile // tiles_x, tile % tiles_x
@@ -144,6 +155,12 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
         GA = np.empty(P, t_final.dtype)
         TF = np.empty(P, t_final.dtype)
         stop = np.empty(P, np.int64)
+        xs = np.empty(w, t_final.dtype)
+        ys = np.empty(h, t_final.dtype)
+        for i in range(w):
+            xs[i] = x0 + i
+        for i in range(h):
+            ys[i] = y0 + i
         kmax = offsets[tile]
         for p in range(P):
             px, py = x0 + p % w, y0 + p // w
@@ -168,25 +185,25 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
             by0 = max(y0, int(np.ceil(my - r)))
             by1 = min(y0 + h - 1, int(np.floor(my + r)))
             for py in range(by0, by1 + 1):
-                dy = py - my
+                dy = ys[py - y0] - my
                 for px in range(bx0, bx1 + 1):
                     p = (py - y0) * w + (px - x0)
                     if k >= stop[p]:
                         continue
-                    dx = px - mx
-                    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < 0.0 or sigma > smax:
+                    dx = xs[px - x0] - mx
+                    sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < 0 or sigma > smax:
                         continue
                     e = np.exp(-sigma)
                     raw = o * e
-                    alpha = min(ALPHA_MAX, raw)
-                    if alpha < ALPHA_MIN:
+                    alpha = min(amax, raw)
+                    if alpha < amin:
                         continue
-                    one_m = 1.0 - alpha
+                    one_m = one - alpha
                     Ti = T[p] / one_m            # transmittance in front of this Gaussian
                     wgt = alpha * Ti
-                    cg = 0.0
-                    sg = 0.0
+                    cg = zero
+                    sg = zero
                     for d in range(D):
                         per_pair[k, 6 + d] += wgt * G[p, d]
                         cg += colors[g, d] * G[p, d]
@@ -196,15 +213,15 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
                     for d in range(D):
                         S[p, d] += colors[g, d] * wgt
                     T[p] = Ti
-                    if raw > ALPHA_MAX:         # clamped: no gradient to opacity or the footprint
+                    if raw > amax:              # clamped: no gradient to opacity or the footprint
                         continue
                     go += d_alpha * e
                     d_sigma = -d_alpha * alpha
-                    gmx += -d_sigma * (a * dx + b * dy)
-                    gmy += -d_sigma * (c * dy + b * dx)
-                    ga += d_sigma * 0.5 * dx * dx
+                    gmx -= d_sigma * (a * dx + b * dy)
+                    gmy -= d_sigma * (c * dy + b * dx)
+                    ga += d_sigma * half * dx * dx
                     gb += d_sigma * dx * dy
-                    gc += d_sigma * 0.5 * dy * dy
+                    gc += d_sigma * half * dy * dy
             per_pair[k, 0] += gmx
             per_pair[k, 1] += gmy
             per_pair[k, 2] += ga
@@ -219,6 +236,10 @@ def _reduce(ids, per_pair, n):
     for k in range(ids.shape[0]):
         out[ids[k]] += per_pair[k]
     return out
+
+
+def _consts(dtype) -> np.ndarray:
+    return np.array([0.5, 1.0, ALPHA_MAX, ALPHA_MIN, T_MIN], dtype)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -243,7 +264,8 @@ class _RasterizeCPU(torch.autograd.Function):
         image = np.empty((height, width, col.shape[1]), col.dtype)
         t_final = np.empty((height, width), col.dtype)
         last = np.empty((height, width), np.int64)
-        _forward(m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, image, t_final, last)
+        _forward(m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, image, t_final, last,
+                 _consts(col.dtype))
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
         ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, t_final, last)
         ctx.size = (width, height, tiles_x)
@@ -259,7 +281,8 @@ class _RasterizeCPU(torch.autograd.Function):
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
         per_pair = np.zeros((len(ids), 6 + col.shape[1]), col.dtype)
-        _backward(m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, t_final, last, gi, ga, per_pair)
+        _backward(m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, t_final, last, gi, ga, per_pair,
+                  _consts(col.dtype))
         g = torch.from_numpy(_reduce(ids, per_pair, len(m)))
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None
