@@ -185,3 +185,50 @@ def test_cuda_matches_reference():
     assert (ref[0] - dev[0].cpu()).abs().max() < 1e-3
     for x, y in zip(ref[2], dev[2]):
         assert torch.allclose(x, y.cpu(), atol=1e-3 * max(1.0, float(x.abs().max())), rtol=1e-2)
+
+
+def test_densification_statistics_from_several_real_renders():
+    from ev3dgs.splat.model import GaussianModel
+    from ev3dgs.splat.strategy import DefaultStrategy
+
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(-0.5, 0.5, (200, 3))
+    model = GaussianModel.from_points(xyz, rng.integers(0, 255, (200, 3)).astype(np.uint8), sh_degree=1)
+    opt = model.make_optimizers()
+    strat = DefaultStrategy(refine_start=0, refine_every=1, grow_grad2d=1e-9)
+    state = strat.initialize_state(len(model))
+    K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+    infos, loss = [], 0.0
+    for dz in (0.0, 0.05):  # two renders of one step, as the blur loss does
+        vm = torch.eye(4)
+        vm[2, 3] = 3.0 + dz
+        image, _, info = rasterization(model.means, model.quats_normalised, model.scales, model.opacities,
+                                       model.sh, vm, K, 64, 48, sh_degree=1, backend="cpu")
+        strat.step_pre_backward(info)
+        infos.append(info)
+        loss = loss + image.mean()
+    loss.backward()
+    visible_both = (infos[0]["radii"] > 0) & (infos[1]["radii"] > 0)
+    n_before = len(model)
+    out = strat.step_post_backward(model, opt, state, step=1, infos=infos)
+    assert visible_both.any() and out["cloned"] + out["split"] > 0
+    assert len(model) == n_before + out["cloned"] + out["split"] * (strat.n_split - 1) - out["pruned"]
+    for name, o in opt.items():
+        assert o.param_groups[0]["params"][0] is model.params[name]
+
+
+@pytest.mark.slow
+def test_raster_benchmark_script(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(root / "tools" / "bench_raster.py"), "--quick", "--repeats", "1",
+                        "--json", str(tmp_path / "r.json"), "--plot", str(tmp_path / "r.png")],
+                       capture_output=True, text=True, cwd=root)
+    assert r.returncode == 0, r.stderr
+    rows = json.loads((tmp_path / "r.json").read_text())["rows"]
+    assert {r["backend"] for r in rows} >= {"reference", "cpu"}
+    assert all(r["max_abs_diff"] <= 1e-4 and r["gaussians"] == 10_000 and r["width"] == 200 for r in rows)
