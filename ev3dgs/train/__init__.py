@@ -1,0 +1,1 @@
+"""Training: event binning, losses and metrics for fitting Gaussians to blurry frames plus events."""

@@ -1,0 +1,68 @@
+"""Training settings (stored as config.json in the run folder)."""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+from ..config import check
+from ..errors import ConfigError
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    scene: str
+    iterations: int = 3000
+    subposes: int = 5                 # b + 1 renders across each exposure
+    event_weight: float = 1.0 / 625.0
+    event_pairs: int = 0              # 0 = all pairs of the b+1 renders, k = k random pairs per step
+    naive: bool = False               # plain 3DGS on the blurry frame at the mid pose
+    event_loss: bool = True
+    blur_space: str = "srgb"          # or "linear": average the renders in linear intensity
+    learn_thresholds: bool = False
+    ssim_lambda: float = 0.2
+    sh_degree: int = 3
+    sh_interval: int = 1000           # raise the active SH degree every this many steps
+    init_points: int = 20000          # random init inside `bounds` when the scene has no /points
+    init_opacity: float = 0.1
+    densify: bool = True
+    checkpoint_every: int = 500
+    seed: int = 0
+    device: str = "auto"
+    threads: int | None = None
+    backend: str = "auto"
+
+    def __post_init__(self):
+        check(self.iterations >= 1, "--iterations must be >= 1")
+        check(1 <= self.subposes <= 64, "--subposes must be in [1, 64]")
+        check(self.event_weight >= 0, "--event-weight must be >= 0")
+        check(self.event_pairs >= 0, "--event-pairs must be >= 0")
+        check(self.blur_space in ("srgb", "linear"), "--blur-space must be srgb or linear")
+        check(0 <= self.ssim_lambda <= 1, "ssim lambda must be in [0, 1]")
+        check(0 <= self.sh_degree <= 3, "--sh-degree must be in [0, 3]")
+        check(self.sh_interval >= 1, "sh interval must be >= 1")
+        check(self.init_points >= 1, "--init-points must be >= 1")
+        check(0 < self.init_opacity < 1, "init opacity must be in (0, 1)")
+        check(self.checkpoint_every >= 1, "--checkpoint-every must be >= 1")
+        check(self.device in ("auto", "cpu", "cuda"), "--device must be auto, cpu or cuda")
+        check(self.threads is None or self.threads >= 1, "--threads must be >= 1")
+        check(self.backend in ("auto", "reference", "cpu", "cuda"), "--backend must be auto, reference, cpu or cuda")
+
+    @property
+    def uses_events(self) -> bool:
+        return self.event_loss and not self.naive and self.subposes > 1 and self.event_weight > 0
+
+    def save(self, path: Path) -> None:
+        path.write_text(json.dumps(asdict(self), indent=2))
+
+    @staticmethod
+    def load(path: Path) -> "TrainConfig":
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ConfigError(f"{path}: cannot read the run's config ({e})") from None
+        known = {f.name for f in fields(TrainConfig)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"{path}: unknown config key {unknown[0]}")
+        return TrainConfig(**data)

@@ -1,0 +1,84 @@
+"""A scene file as the trainer needs it: float images, cameras, the b+1 sub-poses of every exposure, and the
+raw events binned ONCE into signed counts between consecutive sub-pose times."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import schema
+from ..errors import InputError
+from ..geometry import interpolate_pose
+from ..logmap import DEFAULT_LOG_KNEE
+from .events import bin_signed_events, sub_pose_times
+
+
+@dataclass
+class TrainData:
+    name: str
+    width: int
+    height: int
+    K: torch.Tensor                    # (3,3)
+    background: torch.Tensor           # (3,) in image (sRGB) units
+    images: torch.Tensor               # (N,H,W,3) blurry frames in [0,1]
+    sub_times: np.ndarray              # (N,B) int64
+    viewmats: torch.Tensor             # (N,B,4,4) world->camera at the sub-pose times
+    mid_viewmats: torch.Tensor         # (N,4,4) world->camera at the exposure midpoint
+    bins: torch.Tensor | None          # (N,B-1,H,W) signed event counts between sub-poses, None without events
+    pos_threshold: float
+    neg_threshold: float
+    color_filter: str
+    log_knee: float
+    camera_centres: np.ndarray         # (N,3)
+    points: tuple[np.ndarray, np.ndarray] | None
+    bounds: np.ndarray | None
+
+    @property
+    def n_views(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def scene_scale(self) -> float:
+        """3DGS's camera extent: 1.1 x the largest distance of a camera from the cameras' centre."""
+        c = self.camera_centres
+        return 1.1 * float(np.linalg.norm(c - c.mean(axis=0), axis=1).max() or 1.0)
+
+
+def _w2c(c2w: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(c2w)
+
+
+def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.float32) -> TrainData:
+    sc = schema.read(path, require_complete=True)
+    tr = sc.train
+    if tr.poses is None:
+        raise InputError(f"{path}: /train/poses is missing (a recording ingested without pose estimation); "
+                         "re-run ev3dgs-ingest without --no-poses")
+    if subposes < 1:
+        raise InputError(f"--subposes must be >= 1, got {subposes}")
+    N, H, W = len(tr), sc.camera.height, sc.camera.width
+    times = sub_pose_times(np.asarray(tr.exposure), subposes)
+    sub = np.stack([[interpolate_pose(tr.poses[v], tr.pose_t[v], t) for t in times[v]] for v in range(N)])
+    mid_t = np.asarray(tr.exposure).mean(axis=1)
+    mid = np.stack([interpolate_pose(tr.poses[v], tr.pose_t[v], mid_t[v]) for v in range(N)])
+    bins = None
+    if len(sc.events) and subposes > 1:
+        ev = sc.events.load()
+        bins = torch.from_numpy(bin_signed_events(ev.t, ev.x, ev.y, ev.p, times, H, W)).to(device)
+    bg = sc.camera.background if sc.camera.background is not None else (0.0, 0.0, 0.0)
+    to = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
+    images = torch.from_numpy(np.asarray(tr.images)).to(device=device, dtype=dtype) / 255.0
+    points = None
+    if sc.points is not None:
+        points = (np.asarray(sc.points.xyz), np.asarray(sc.points.rgb))
+    return TrainData(
+        name=sc.name, width=W, height=H, K=to(sc.camera.K), background=to(bg), images=images,
+        sub_times=times, viewmats=to(np.linalg.inv(sub)), mid_viewmats=to(np.linalg.inv(mid)), bins=bins,
+        pos_threshold=float(sc.sensor.pos_threshold), neg_threshold=float(sc.sensor.neg_threshold),
+        color_filter=sc.sensor.color_filter,
+        log_knee=float(sc.sensor.log_knee) if sc.sensor.log_knee is not None else DEFAULT_LOG_KNEE,
+        camera_centres=mid[:, :3, 3], points=points,
+        bounds=None if sc.bounds is None else np.asarray(sc.bounds),
+    )

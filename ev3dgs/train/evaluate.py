@@ -1,0 +1,97 @@
+"""`ev3dgs eval RUN`: novel views (/test) and deblurred training views (/train/sharp poses) against their
+sharp ground truth, with the blurry inputs as the baseline; metrics.json and side-by-side PNGs."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .. import schema
+from ..errors import InputError
+from ..splat.model import GaussianModel
+from .config import TrainConfig
+from .metrics import lpips_unavailable_reason, psnr, ssim_metric
+from .trainer import resolve_device
+
+
+def load_run(run_dir: str | Path, device="cpu"):
+    run = Path(run_dir)
+    if not (run / "config.json").is_file() or not (run / "model.pt").is_file():
+        raise InputError(f"{run}: not a finished training run (config.json and model.pt expected)")
+    cfg = TrainConfig.load(run / "config.json")
+    try:
+        payload = torch.load(run / "model.pt", map_location=device, weights_only=False)
+    except (OSError, RuntimeError, EOFError) as e:
+        raise InputError(f"{run / 'model.pt'}: not a readable model ({e})") from None
+    return cfg, GaussianModel.from_state_dict(payload["model"], device=device)
+
+
+@torch.no_grad()
+def render_views(model: GaussianModel, poses: np.ndarray, K, width, height, background, backend="auto") -> list:
+    from ..splat.rasterize import rasterization
+
+    out = []
+    for c2w in poses:
+        vm = torch.as_tensor(np.linalg.inv(c2w), dtype=model.dtype, device=model.device)
+        img, _, _ = rasterization(model.means, model.quats_normalised, model.scales, model.opacities, model.sh,
+                                  vm, K, width, height, sh_degree=model.active_sh_degree, background=background,
+                                  backend=backend)
+        out.append((img.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8))
+    return out
+
+
+def _scores(pred: list, truth) -> dict:
+    p = [psnr(a, np.asarray(b)) for a, b in zip(pred, truth)]
+    s = [ssim_metric(a, np.asarray(b)) for a, b in zip(pred, truth)]
+    return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)), "n": len(p), "psnr_per_view": p}
+
+
+def _png(path: Path, *images) -> None:
+    row = np.hstack([np.pad(np.asarray(i), ((1, 1), (1, 1), (0, 0)), constant_values=255) for i in images])
+    ok, data = cv2.imencode(".png", cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_bytes(data.tobytes())
+    os.replace(tmp, path)
+
+
+def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str = "auto",
+             write_images: bool = True) -> dict:
+    run = Path(run_dir)
+    dev = resolve_device(device)
+    cfg, model = load_run(run, dev)
+    sc = schema.read(cfg.scene)
+    W, H = sc.camera.width, sc.camera.height
+    K = torch.as_tensor(sc.camera.K, dtype=model.dtype, device=dev)
+    bg = torch.as_tensor(sc.camera.background if sc.camera.background is not None else (0, 0, 0),
+                         dtype=model.dtype, device=dev)
+    reason = lpips_unavailable_reason(lpips_weights) or "LPIPS network evaluation is not implemented yet"
+    metrics = {"run": str(run), "scene": cfg.scene,
+               "variant": "naive" if cfg.naive else ("blur+event" if cfg.uses_events else "blur-only"),
+               "lpips": None, "lpips_reason": reason}
+    out_dir = run / "eval"
+    if write_images:
+        out_dir.mkdir(exist_ok=True)
+    if sc.test is not None and len(sc.test.images):
+        pred = render_views(model, np.asarray(sc.test.poses), K, W, H, bg, cfg.backend)
+        truth = np.asarray(sc.test.images)
+        metrics["test"] = _scores(pred, truth)
+        for i, (p, t) in enumerate(zip(pred, truth)) if write_images else ():
+            _png(out_dir / f"test_{i:03d}.png", t, p)
+    tr = sc.train
+    if tr.sharp is not None and tr.sharp_poses is not None:
+        pred = render_views(model, np.asarray(tr.sharp_poses), K, W, H, bg, cfg.backend)
+        sharp, blurry = np.asarray(tr.sharp), np.asarray(tr.images)
+        metrics["train_sharp"] = _scores(pred, sharp)
+        metrics["blurry_input"] = _scores(list(blurry), sharp)
+        for i, (b, p, s) in enumerate(zip(blurry, pred, sharp)) if write_images else ():
+            _png(out_dir / f"train_{i:03d}.png", b, p, s)
+    if "test" not in metrics and "train_sharp" not in metrics:
+        raise InputError(f"{cfg.scene}: no sharp ground truth (/test or /train/sharp) to evaluate against")
+    tmp = run / f".metrics.json.tmp-{os.getpid()}"
+    tmp.write_text(json.dumps(metrics, indent=2))
+    os.replace(tmp, run / "metrics.json")
+    return metrics
