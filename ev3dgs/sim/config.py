@@ -29,7 +29,7 @@ from pathlib import Path
 from ..config import check, from_dict, load_toml
 from ..logmap import DEFAULT_LOG_KNEE
 
-BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+from ..sensor import BAYER_PATTERNS
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from ..logmap import DEFAULT_LOG_KNEE, safe_log_torch
-from ..sim.effects.color import LUMINANCE_WEIGHTS, cfa_channels
+from ..sensor import LUMINANCE_WEIGHTS, cfa_channels
 
 _BAYER = {"RGGB", "BGGR", "GRBG", "GBRG"}
 _SRGB_KNEE = 0.04045

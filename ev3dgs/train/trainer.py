@@ -142,7 +142,7 @@ class Trainer:
         self.step += 1
         with torch.no_grad():
             p = psnr(stack.mean(0).clamp(0, 1), target)
-        return {"step": self.step, "loss": float(loss), "blur": float(l_blur), "event": float(l_event),
+        return {"step": self.step, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
                 "psnr_blurry": p, "gaussians": len(self.model), **refined}
 
     def _guard(self, loss, l_blur, l_event) -> None:
@@ -152,8 +152,8 @@ class Trainer:
         if bad:
             ckpt = self.run_dir / "ckpt.pt"
             where = f"the last good checkpoint is {ckpt}" if ckpt.exists() else "no checkpoint was written yet"
-            raise TrainingError(f"non-finite loss or gradient at step {self.step + 1} (blur {float(l_blur):.4g}, "
-                                f"event {float(l_event):.4g}); stopped, {where}")
+            raise TrainingError(f"non-finite loss or gradient at step {self.step + 1} (blur {l_blur.item():.4g}, "
+                                f"event {l_event.item():.4g}); stopped, {where}")
 
     # ------------------------------------------------------------------ the run
     def fit(self, resume: bool = False, on_step=None) -> dict:
@@ -179,11 +179,11 @@ class Trainer:
                 bar.update(1)
                 bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr_blurry']:.2f}",
                                 gaussians=rec["gaussians"], refresh=False)
-                if on_step is not None:
-                    on_step(self, rec)
                 if self.step % self.cfg.checkpoint_every == 0 or self.step == self.cfg.iterations:
                     log.flush()
                     save_checkpoint(ckpt, self)
+                if on_step is not None:
+                    on_step(self, rec)
         finally:
             bar.close()
             log.close()
@@ -192,11 +192,14 @@ class Trainer:
         return rec
 
     def save_model(self) -> None:
+        """model.pt (and config.json) in the run folder: what eval, render and export read."""
         import os
 
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.cfg.save(self.run_dir / "config.json")
         tmp = self.run_dir / f".model.pt.tmp-{os.getpid()}"
         torch.save({"model": self.model.state_dict(),
-                    "thresholds": {k: float(v.exp()) for k, v in self.thresholds.items()}}, tmp)
+                    "thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()}}, tmp)
         os.replace(tmp, self.run_dir / "model.pt")
 
 

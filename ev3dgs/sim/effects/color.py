@@ -1,22 +1,12 @@
 """Frames -> per-pixel linear intensity: luminance, or the pixel's own channel under a Bayer filter."""
 from __future__ import annotations
 
-import colour
 import numpy as np
 
 from ...errors import InputError
+from ...sensor import LUMINANCE_WEIGHTS, cfa_channels
 
-# Y row of the sRGB (Rec. 709 primaries, D65) RGB->XYZ matrix: 0.2126, 0.7152, 0.0722.
-LUMINANCE_WEIGHTS = np.ascontiguousarray(colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ[1], dtype=np.float64)
-
-_CHANNEL = {"R": 0, "G": 1, "B": 2}
-
-
-def cfa_channels(pattern: str, height: int, width: int) -> np.ndarray:
-    """(H, W) array of channel indices (0=R, 1=G, 2=B) for a Bayer pattern named row-major from (0, 0)."""
-    block = np.array([[_CHANNEL[pattern[0]], _CHANNEL[pattern[1]]],
-                      [_CHANNEL[pattern[2]], _CHANNEL[pattern[3]]]])
-    return np.tile(block, ((height + 1) // 2, (width + 1) // 2))[:height, :width]
+__all__ = ["LUMINANCE_WEIGHTS", "cfa_channels", "luminance", "ColorFilterArray"]
 
 
 def luminance(frame: np.ndarray) -> np.ndarray:

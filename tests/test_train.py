@@ -1,0 +1,201 @@
+"""The trainer end to end on a small synthetic scene made without Blender."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from ev3dgs import schema
+from ev3dgs.cli import main as cli
+from ev3dgs.geometry import intrinsics, look_at
+from ev3dgs.sim import simulate_events
+from ev3dgs.sim.isp import linear_to_srgb, srgb_to_linear
+from ev3dgs.splat.model import GaussianModel
+from ev3dgs.splat.rasterize import rasterization
+from ev3dgs.train.config import TrainConfig
+from ev3dgs.train.evaluate import evaluate
+from ev3dgs.train.export import load_ply
+from ev3dgs.train.trainer import Trainer, TrainingError
+
+W, H = 40, 30
+
+
+def _truth():
+    rng = np.random.default_rng(0)
+    n = 300
+    xyz = rng.uniform(-0.6, 0.6, (n, 3))
+    m = GaussianModel.from_points(xyz, rng.integers(30, 255, (n, 3)).astype(np.uint8), sh_degree=0,
+                                  init_opacity=0.8)
+    return m
+
+
+def _draw(model, c2w, K):
+    vm = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
+    with torch.no_grad():
+        img, _, _ = rasterization(model.means, model.quats_normalised, model.scales, model.opacities, model.sh,
+                                  vm, K, W, H, sh_degree=0, background=torch.ones(3), backend="cpu")
+    return img.clamp(0, 1).numpy()
+
+
+@pytest.fixture(scope="module")
+def scene_path(tmp_path_factory):
+    """6 shaky views (5 sub-frames over 100 ms) + 2 test views of a Gaussian blob cloud; events from the
+    simulator on the linear sub-frames, blurry frames averaged in linear light."""
+    truth = _truth()
+    K = intrinsics(W, H, 50)
+    Kt = torch.as_tensor(K, dtype=torch.float32)
+    rng = np.random.default_rng(1)
+    views, S = 6, 5
+    imgs, sharp, sharp_poses, poses, pose_t, exposure, linear, times = [], [], [], [], [], [], [], []
+    for v in range(views):
+        az = 2 * np.pi * v / views
+        eye = 3.0 * np.array([np.cos(az), np.sin(az), 0.5])
+        c0 = look_at(eye, [0, 0, 0])
+        start = v * 150_000
+        t = start + np.linspace(0, 100_000, S).astype(np.int64)
+        drift = rng.normal(0, 0.3, 3)
+        ps = [look_at(eye + drift * (k / (S - 1) - 0.5), [0, 0, 0]) for k in range(S)]
+        frames = np.stack([_draw(truth, p, Kt) for p in ps])
+        lin = srgb_to_linear(frames)
+        linear.append(lin)
+        times.append(t)
+        imgs.append((linear_to_srgb(lin.mean(0)) * 255 + 0.5).astype(np.uint8))
+        sharp.append((frames[S // 2] * 255 + 0.5).astype(np.uint8))
+        sharp_poses.append(ps[S // 2])
+        poses.append(np.stack(ps))
+        pose_t.append(t)
+        exposure.append((t[0], t[-1]))
+    parts = []
+    from ev3dgs.sim import DVSSimulator
+
+    sim = DVSSimulator(H, W)
+    for lin, t in zip(linear, times):
+        sim.restart()
+        parts.append(sim.feed(lin.astype(np.float32), t))
+    from ev3dgs.events import Events
+
+    ev = Events.concatenate(parts)
+    test_poses = [look_at(3.0 * np.array([np.cos(a), np.sin(a), 0.4]), [0, 0, 0]) for a in (0.5, 2.5)]
+    sc = schema.Scene(
+        name="blobs", source="test", camera=schema.Camera(W, H, K=K, background=(1.0, 1.0, 1.0)), events=ev,
+        sensor=schema.EventSensor(), bounds=np.array([[-0.7] * 3, [0.7] * 3]),
+        train=schema.Train(images=np.stack(imgs), exposure=np.array(exposure), poses=np.stack(poses),
+                           pose_t=np.stack(pose_t), sharp=np.stack(sharp), sharp_poses=np.stack(sharp_poses)),
+        test=schema.Test(images=np.stack([(_draw(truth, p, Kt) * 255 + 0.5).astype(np.uint8) for p in test_poses]),
+                         poses=np.stack(test_poses)))
+    path = tmp_path_factory.mktemp("scene") / "blobs.h5"
+    schema.write(sc, path)
+    assert len(ev) > 100
+    return str(path)
+
+
+def cfg(scene, **kw):
+    base = dict(scene=scene, iterations=60, init_points=800, checkpoint_every=20, threads=1, seed=3, sh_degree=1,
+                sh_interval=20)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_training_improves_the_sharp_views(scene_path, tmp_path):
+    tr = Trainer(cfg(scene_path, iterations=150), tmp_path / "run", quiet=True)
+    tr.save_model()
+    before = evaluate(tmp_path / "run", write_images=False)
+    tr.fit()
+    after = evaluate(tmp_path / "run")
+    assert after["train_sharp"]["psnr"] > before["train_sharp"]["psnr"] + 3
+    assert after["test"]["psnr"] > before["test"]["psnr"] + 2
+    assert after["lpips"] is None and "lpips" in after["lpips_reason"].lower()
+    assert (tmp_path / "run" / "training.png").stat().st_size > 1000
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert len(log) == 150 and all(np.isfinite(r["loss"]) for r in log) and log[-1]["event"] > 0
+
+
+def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path):
+    class Stop(Exception):
+        pass
+
+    def stop_at_40(trainer, rec):
+        if trainer.step == 40:
+            raise Stop
+
+    full = Trainer(cfg(scene_path), tmp_path / "a", quiet=True)
+    full.fit()
+    part = Trainer(cfg(scene_path), tmp_path / "b", quiet=True)
+    with pytest.raises(Stop):
+        part.fit(on_step=stop_at_40)
+    resumed = Trainer(cfg(scene_path), tmp_path / "b", quiet=True)
+    resumed.fit(resume=True)
+    for name, p in full.model.params.items():
+        assert torch.equal(p, resumed.model.params[name]), name
+    assert resumed.step == full.step == 60
+
+
+def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypatch):
+    import ev3dgs.train.trainer as T
+
+    real = T.blur_loss
+
+    def poisoned(*a, **k):
+        out = real(*a, **k)
+        return out * float("nan") if poisoned.calls >= 25 else out
+
+    poisoned.calls = 0
+
+    def counting(*a, **k):
+        poisoned.calls += 1
+        return poisoned(*a, **k)
+
+    monkeypatch.setattr(T, "blur_loss", counting)
+    tr = Trainer(cfg(scene_path), tmp_path / "run", quiet=True)
+    with pytest.raises(TrainingError, match="non-finite loss.*step 25.*ckpt.pt"):
+        tr.fit()
+    ckpt = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)
+    assert ckpt["step"] == 20 and all(torch.isfinite(v).all() for k, v in ckpt["model"].items()
+                                      if isinstance(v, torch.Tensor))
+
+
+@pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"], ["--blur-space", "linear", "--learn-thresholds",
+                                                                      "--event-pairs", "3"]])
+def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
+    run = tmp_path / "run"
+    assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--init-points", "300",
+                     "--threads", "1", "--quiet", *flags]) == 0
+    assert cli.main(["eval", str(run)]) == 0
+    assert "PSNR" in capsys.readouterr().out
+    m = json.loads((run / "metrics.json").read_text())
+    assert {"test", "train_sharp", "blurry_input"} <= set(m)
+    assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply")]) == 0
+    assert len(load_ply(tmp_path / "m.ply")) > 0
+    assert cli.main(["render", str(run), "--out", str(tmp_path / "frames"), "--frames", "3"]) == 0
+    assert len(list((tmp_path / "frames").glob("*.png"))) == 3
+
+
+@pytest.mark.parametrize("args,match", [
+    (["train", "/nonexistent.h5", "--out", "X"], "no such file"),
+    (["train", "SCENE", "--out", "X", "--subposes", "0"], "subposes"),
+    (["train", "SCENE", "--out", "X", "--iterations", "0"], "iterations"),
+    (["train", "SCENE", "--out", "X", "--device", "cuda"], "CUDA|cuda"),
+    (["train", "SCENE", "--out", "X", "--resume"], "no checkpoint"),
+    (["eval", "/nonexistent_run"], "not a finished training run"),
+])
+def test_bad_input_is_one_line_exit_2(scene_path, tmp_path, capsys, args, match):
+    if "--device" in args and torch.cuda.is_available():
+        pytest.skip("CUDA present")
+    args = [a.replace("SCENE", scene_path).replace("X", str(tmp_path / "r")) for a in args]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1
+    import re
+
+    assert re.search(match, err)
+
+
+def test_scene_without_poses_is_refused(scene_path, tmp_path, capsys):
+    sc = schema.read(scene_path)
+    tr = sc.train
+    sc.train = schema.Train(images=np.asarray(tr.images), exposure=tr.exposure)
+    sc.events = sc.events.load()
+    sc.test = None
+    schema.write(sc, tmp_path / "noposes.h5")
+    assert cli.main(["train", str(tmp_path / "noposes.h5"), "--out", str(tmp_path / "r")]) == 2
+    assert "/train/poses is missing" in capsys.readouterr().err

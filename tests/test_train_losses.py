@@ -1,0 +1,326 @@
+"""Trainer building blocks: event binning/pairs, blur and event losses, sRGB transfer, SSIM/PSNR metrics."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ev3dgs.logmap import DEFAULT_LOG_KNEE, safe_log_torch
+from ev3dgs.sensor import LUMINANCE_WEIGHTS, cfa_channels
+from ev3dgs.train.events import bin_signed_events, pair_list, pair_targets, sub_pose_times
+from ev3dgs.train.losses import (blur_loss, event_loss, linear_to_srgb_torch, log_intensity,
+                                 srgb_to_linear_torch, ssim)
+from ev3dgs.train.metrics import lpips_unavailable_reason, psnr, ssim_metric
+
+torch.set_default_dtype(torch.float32)
+
+
+# ----------------------------------------------------------------------------------------------- events
+
+def test_sub_pose_times_ends_and_spacing():
+    exp = np.array([[1000, 2000], [0, 7], [5, 5], [10**12, 10**12 + 33333]], dtype=np.int64)
+    for n in (2, 3, 5, 9):
+        t = sub_pose_times(exp, n)
+        assert t.dtype == np.int64 and t.shape == (4, n)
+        assert np.array_equal(t[:, 0], exp[:, 0]) and np.array_equal(t[:, -1], exp[:, 1])
+        assert np.all(np.diff(t, axis=1) >= 0)
+        for v in range(4):
+            expect = [exp[v, 0] + round(k * (exp[v, 1] - exp[v, 0]) / (n - 1)) for k in range(n)]
+            assert np.array_equal(t[v], expect)
+    even = sub_pose_times(np.array([[0, 1000]]), 5)
+    assert np.array_equal(even[0], [0, 250, 500, 750, 1000])
+    assert np.all(np.diff(even[0]) == 250)
+    mid = sub_pose_times(np.array([[1000, 2000], [0, 10]]), 1)
+    assert np.array_equal(mid[:, 0], [1500, 5])
+    with pytest.raises(ValueError):
+        sub_pose_times(exp, 0)
+
+
+def _brute_bins(t, x, y, p, times, h, w):
+    n, k = times.shape
+    out = np.zeros((n, k - 1, h, w), np.float64)
+    for v in range(n):
+        for b in range(k - 1):
+            lo, hi = times[v, b], times[v, b + 1]
+            last = b == k - 2
+            for ti, xi, yi, pi in zip(t.tolist(), x.tolist(), y.tolist(), p.tolist()):
+                if lo <= ti and (ti <= hi if last else ti < hi):
+                    out[v, b, yi, xi] += pi
+    return out
+
+
+@pytest.mark.parametrize("k", [2, 3, 4, 6])
+def test_bin_signed_events_matches_brute_force_and_keeps_inputs(k):
+    rng = np.random.default_rng(k)
+    h, w = 5, 7
+    exposure = np.array([[0, 1000], [1500, 2600], [400, 1200], [5000, 6000], [3000, 3000]], np.int64)
+    times = sub_pose_times(exposure, k)
+    # random events over [0, 4000) (none in view 3's window), plus events exactly on every boundary
+    t = np.concatenate([rng.integers(0, 4000, 300), times[:3].ravel(), times[4].ravel()]).astype(np.int64)
+    t.sort(kind="stable")
+    e = len(t)
+    x = rng.integers(0, w, e).astype(np.uint16)
+    y = rng.integers(0, h, e).astype(np.uint16)
+    p = np.where(rng.random(e) < 0.5, -1, 1).astype(np.int8)
+    copies = [a.copy() for a in (t, x, y, p, times)]
+    bins = bin_signed_events(t, x, y, p, times, h, w)
+    assert bins.dtype == np.float32 and bins.shape == (5, k - 1, h, w)
+    np.testing.assert_array_equal(bins, _brute_bins(t, x, y, p, times, h, w))
+    assert not bins[3].any()  # window without events
+    for a, c in zip((t, x, y, p, times), copies):
+        assert np.array_equal(a, c) and a.dtype == c.dtype
+    # an empty window (zero-length bins) and an empty stream
+    empty = bin_signed_events(t[:0], x[:0], y[:0], p[:0], times, h, w)
+    assert empty.shape == (5, k - 1, h, w) and not empty.any()
+
+
+def test_bin_signed_events_end_event_counts_in_last_bin():
+    times = np.array([[0, 10, 20]], np.int64)
+    t = np.array([0, 10, 20, 21], np.int64)
+    x = np.zeros(4, np.uint16)
+    y = np.zeros(4, np.uint16)
+    p = np.array([1, 1, -1, 1], np.int8)
+    b = bin_signed_events(t, x, y, p, times, 1, 1)
+    assert b[0, :, 0, 0].tolist() == [1.0, 0.0]  # +1 at 10 and -1 at 20 (inclusive end) share bin 1; 21 is out
+
+
+def test_pair_list_all_and_random():
+    assert pair_list(4) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    assert pair_list(1) == []
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    a, b = pair_list(5, 4, g1), pair_list(5, 4, g2)
+    assert a == b and len(set(a)) == 4 and all(0 <= i < j < 5 for i, j in a)
+    with pytest.raises(ValueError):
+        pair_list(3, 4)
+
+
+def test_pair_targets_brute_force_and_bins_untouched():
+    rng = np.random.default_rng(0)
+    bins = torch.from_numpy(rng.integers(-3, 4, (5, 4, 6)).astype(np.float32))
+    before = bins.clone()
+    pairs = pair_list(6)
+    tg = pair_targets(bins, pairs)
+    assert tg.shape == (len(pairs), 4, 6)
+    for i, (k1, k2) in enumerate(pairs):
+        brute = np.zeros((4, 6), np.float32)
+        for kk in range(k1, k2):
+            brute += before[kk].numpy()
+        np.testing.assert_array_equal(tg[i].numpy(), brute)
+    assert torch.equal(bins, before)
+    tg += 100.0  # results must not alias the bins
+    assert torch.equal(bins, before)
+
+
+# ----------------------------------------------------------------------------------------------- sRGB
+
+def test_srgb_round_trip_and_finite_gradients():
+    x = torch.linspace(0, 1, 1001, dtype=torch.float64)
+    np.testing.assert_allclose(linear_to_srgb_torch(srgb_to_linear_torch(x)).numpy(), x.numpy(), atol=1e-12)
+    np.testing.assert_allclose(srgb_to_linear_torch(linear_to_srgb_torch(x)).numpy(), x.numpy(), atol=1e-12)
+    assert float(srgb_to_linear_torch(torch.tensor(1.0))) == pytest.approx(1.0)
+    for fn in (srgb_to_linear_torch, linear_to_srgb_torch):
+        z = torch.tensor([-0.5, 0.0, 1e-9, 0.003, 0.04045, 0.5, 1.0, 1.2], requires_grad=True)
+        fn(z).sum().backward()
+        assert torch.isfinite(z.grad).all()
+
+
+# ----------------------------------------------------------------------------------------------- event loss
+
+def _renders(value, k=3, h=4, w=4):
+    return torch.full((k, h, w, 3), float(value), requires_grad=True)
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+@pytest.mark.parametrize("cf", ["none", "RGGB"])
+def test_event_loss_finite_at_black_and_white(value, cf):
+    r = _renders(value)
+    pairs = pair_list(3)
+    targets = torch.ones(len(pairs), 4, 4)
+    loss = event_loss(log_intensity(r, cf), targets, pairs, 0.2, 0.3)
+    assert torch.isfinite(loss) and loss >= 0
+    loss.backward()
+    assert torch.isfinite(r.grad).all()
+
+
+def test_event_loss_sign_and_hand_computed_prediction():
+    tp, tn = 0.25, 0.4
+    dark = torch.full((1, 2, 2, 3), 0.4)  # linear 0.133, above the log knee
+    bright = torch.full((1, 2, 2, 3), 0.7)
+    log_up = log_intensity(torch.cat([dark, bright]))  # later pose brighter
+    d = float(log_up[1, 0, 0] - log_up[0, 0, 0])
+    assert d > 0
+    # log of the luminance of the linear values (all channels equal -> luminance = the channel value)
+    lin = lambda s: (s / 1.055 + 0.055 / 1.055) ** 2.4  # noqa: E731
+    assert d == pytest.approx(math.log(lin(0.7)) - math.log(lin(0.4)), rel=1e-5)
+    n = 3.0
+    pos = event_loss(log_up, torch.full((1, 2, 2), n), [(0, 1)], tp, tn)
+    neg = event_loss(log_up, torch.full((1, 2, 2), -n), [(0, 1)], tp, tn)
+    assert pos < neg
+    # zero target -> loss = pred^2; pred = d / theta_pos for a brightening
+    z = event_loss(log_up, torch.zeros(1, 2, 2), [(0, 1)], tp, tn)
+    assert float(z) == pytest.approx((d / tp) ** 2, rel=1e-5)
+    # darkening: pred = -d / theta_neg
+    log_down = log_intensity(torch.cat([bright, dark]))
+    zd = event_loss(log_down, torch.zeros(1, 2, 2), [(0, 1)], tp, tn)
+    assert float(zd) == pytest.approx((d / tn) ** 2, rel=1e-5)
+    # mixed pixels in one map: mean of per-pixel squared errors with their own threshold
+    ll = torch.tensor([[[0.0, 0.0]], [[0.5, -0.6]]])
+    got = event_loss(ll, torch.tensor([[[1.0, -1.0]]]), [(0, 1)], tp, tn)
+    want = ((0.5 / tp - 1.0) ** 2 + (-0.6 / tn + 1.0) ** 2) / 2
+    assert float(got) == pytest.approx(want, rel=1e-6)
+
+
+def test_event_loss_learnable_thresholds_get_finite_gradients():
+    torch.manual_seed(0)
+    r = torch.rand(4, 5, 5, 3)
+    r[0] = 0.0  # exact black pose
+    r.requires_grad_(True)
+    tp = torch.tensor(0.2, requires_grad=True)
+    tn = torch.tensor(0.3, requires_grad=True)
+    pairs = pair_list(4)
+    targets = torch.randint(-3, 4, (len(pairs), 5, 5)).float()
+    loss = event_loss(log_intensity(r), targets, pairs, tp, tn)
+    loss.backward()
+    for g in (tp.grad, tn.grad, r.grad):
+        assert g is not None and torch.isfinite(g).all()
+    assert float(tp.grad) != 0.0 and float(tn.grad) != 0.0
+
+
+def test_log_intensity_luminance_and_bayer_channel():
+    torch.manual_seed(1)
+    h, w = 4, 6
+    base = torch.rand(1, h, w, 3) * 0.8 + 0.1
+    lum = log_intensity(base, "none")
+    lin = srgb_to_linear_torch(base)
+    expect = safe_log_torch((lin * torch.as_tensor(LUMINANCE_WEIGHTS, dtype=lin.dtype)).sum(-1), DEFAULT_LOG_KNEE)
+    torch.testing.assert_close(lum, expect)
+    before = log_intensity(base, "RGGB")
+    moved = base.clone()
+    moved[..., 0] += 0.05  # only the R channel changes
+    after = log_intensity(moved, "RGGB")
+    is_r = torch.from_numpy(cfa_channels("RGGB", h, w) == 0)
+    changed = (after != before)[0]
+    assert torch.equal(changed, is_r)
+    assert is_r[0, 0] and not is_r[0, 1] and not is_r[1, 0] and not is_r[1, 1]
+    with pytest.raises(ValueError):
+        log_intensity(base, "XYZW")
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), tp=st.floats(0.01, 2.0), tn=st.floats(0.01, 2.0),
+       k=st.integers(2, 5), extreme=st.sampled_from(["none", "black", "white"]))
+def test_event_loss_nonnegative_finite_property(seed, tp, tn, k, extreme):
+    g = torch.Generator().manual_seed(seed)
+    r = torch.rand(k, 3, 4, 3, generator=g)
+    if extreme == "black":
+        r[0] = 0.0
+    elif extreme == "white":
+        r[-1] = 1.0
+    r.requires_grad_(True)
+    pairs = pair_list(k)
+    targets = torch.randint(-20, 21, (len(pairs), 3, 4), generator=g).float()
+    loss = event_loss(log_intensity(r), targets, pairs, tp, tn)
+    assert torch.isfinite(loss) and float(loss.detach()) >= 0.0
+    loss.backward()
+    assert torch.isfinite(r.grad).all()
+
+
+# ----------------------------------------------------------------------------------------------- SSIM / blur
+
+def _gauss11():
+    g = np.exp(-((np.arange(11) - 5) ** 2) / (2 * 1.5 ** 2))
+    return g / g.sum()
+
+
+def _ssim_numpy(a, b):
+    """Independent SSIM: explicit separable zero-padded numpy convolution, per channel."""
+    g = _gauss11()
+
+    def blur(z):
+        h, w, c = z.shape
+        zp = np.zeros((h + 10, w + 10, c))
+        zp[5:-5, 5:-5] = z
+        rows = sum(g[i] * zp[i:i + h] for i in range(11))  # (h, w+10, c)
+        return sum(g[j] * rows[:, j:j + w] for j in range(11))
+
+    mu1, mu2 = blur(a), blur(b)
+    s1 = blur(a * a) - mu1 ** 2
+    s2 = blur(b * b) - mu2 ** 2
+    s12 = blur(a * b) - mu1 * mu2
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    m = ((2 * mu1 * mu2 + c1) * (2 * s12 + c2)) / ((mu1 ** 2 + mu2 ** 2 + c1) * (s1 + s2 + c2))
+    return m.mean()
+
+
+def test_ssim_identity_symmetry_and_independent_numpy():
+    rng = np.random.default_rng(5)
+    a = rng.random((23, 31, 3))
+    b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+    ta, tb = torch.from_numpy(a), torch.from_numpy(b)
+    assert float(ssim(ta, ta)) == pytest.approx(1.0, abs=1e-12)
+    assert float(ssim(ta, tb)) == pytest.approx(float(ssim(tb, ta)), abs=1e-14)
+    assert float(ssim(ta, tb)) == pytest.approx(_ssim_numpy(a, b), abs=1e-10)
+    assert ssim_metric(a, b) == pytest.approx(_ssim_numpy(a, b), abs=1e-10)
+    assert ssim_metric(a.astype(np.float32), b) == pytest.approx(_ssim_numpy(a.astype(np.float32), b), abs=1e-7)
+
+
+def test_ssim_matches_scipy_gaussian_filter():
+    ndimage = pytest.importorskip("scipy.ndimage")
+    rng = np.random.default_rng(6)
+    a, b = rng.random((20, 17, 3)), rng.random((20, 17, 3))
+
+    def blur(z):  # truncate 5/1.5 -> radius int(5 + 0.5) = 5, an 11-tap window; zero padding as conv2d
+        return ndimage.gaussian_filter(z, sigma=(1.5, 1.5, 0), truncate=5 / 1.5, mode="constant", cval=0.0)
+
+    mu1, mu2 = blur(a), blur(b)
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    m = ((2 * mu1 * mu2 + c1) * (2 * (blur(a * b) - mu1 * mu2) + c2)) / (
+        (mu1 ** 2 + mu2 ** 2 + c1) * (blur(a * a) - mu1 ** 2 + blur(b * b) - mu2 ** 2 + c2))
+    assert float(ssim(torch.from_numpy(a), torch.from_numpy(b))) == pytest.approx(m.mean(), abs=1e-10)
+
+
+def _plain(render, target, lam):
+    return (1 - lam) * torch.mean((render - target) ** 2) + lam * (1 - ssim(render, target))
+
+
+def test_blur_loss_single_identical_and_linear_space():
+    torch.manual_seed(2)
+    r = torch.rand(1, 16, 16, 3, dtype=torch.float64)
+    tgt = torch.rand(16, 16, 3, dtype=torch.float64)
+    for lam in (0.0, 0.2, 1.0):
+        assert float(blur_loss(r, tgt, lam)) == pytest.approx(float(_plain(r[0], tgt, lam)), abs=1e-12)
+        assert float(blur_loss(r, tgt, lam, "linear")) == pytest.approx(float(_plain(r[0], tgt, lam)), abs=1e-10)
+    same = r.expand(4, -1, -1, -1)
+    for space in ("srgb", "linear"):
+        assert float(blur_loss(same, tgt, 0.2, space)) == pytest.approx(float(_plain(r[0], tgt, 0.2)), abs=1e-10)
+    diff = torch.rand(3, 16, 16, 3, dtype=torch.float64)
+    assert abs(float(blur_loss(diff, tgt, 0.2, "srgb")) - float(blur_loss(diff, tgt, 0.2, "linear"))) > 1e-6
+    with pytest.raises(ValueError):
+        blur_loss(diff, tgt, 0.2, "log")
+    diff.requires_grad_(True)
+    blur_loss(diff, tgt, 0.2, "linear").backward()
+    assert torch.isfinite(diff.grad).all()
+
+
+# ----------------------------------------------------------------------------------------------- metrics
+
+def test_psnr_identical_uint8_and_value():
+    rng = np.random.default_rng(7)
+    u = rng.integers(0, 256, (8, 9, 3), dtype=np.uint8)
+    v = rng.integers(0, 256, (8, 9, 3), dtype=np.uint8)
+    same = psnr(u, u)
+    assert math.isfinite(same) and same >= 100
+    assert psnr(u, v) == pytest.approx(psnr(u / 255.0, v / 255.0), abs=1e-12)
+    assert psnr(torch.from_numpy(u / 255.0), v) == pytest.approx(psnr(u, v), abs=1e-12)
+    assert psnr(np.zeros((2, 2)), np.full((2, 2), 0.1)) == pytest.approx(20.0)
+
+
+def test_lpips_reason(tmp_path):
+    assert "--lpips-weights" in lpips_unavailable_reason(None)
+    assert "--lpips-weights" in lpips_unavailable_reason(tmp_path / "missing.pth")
+    assert lpips_unavailable_reason(tmp_path) is not None  # a directory is not a weights file
+    f = tmp_path / "w.pth"
+    f.write_bytes(b"x")
+    assert lpips_unavailable_reason(f) is None
