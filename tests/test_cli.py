@@ -131,7 +131,7 @@ def test_installed_entry_point_runs(npz, tmp_path):
 def test_demo_runs_and_writes_a_valid_scene(tmp_path):
     from ev3dgs import demo
 
-    result = demo.run(tmp_path, views=1, test_views=0, width=48, height=36, samples=2, quiet=True)
+    result = demo.run(tmp_path, views=1, test_views=0, width=48, height=36, samples=2, quiet=True, train=False)
     schema.validate(result["path"], require_complete=True)
     assert result["events"] > 0
     png = cv2.imread(str(tmp_path / "lego_view0.png"))
@@ -153,3 +153,13 @@ def test_benchmark_script_writes_json_and_plot(tmp_path):
     clean = {r["motion_px_per_frame"]: r["events"] for r in rows if r["mode"] == "clean"}
     assert clean[4] > 2 * clean[1] > 0  # faster motion, more events
     assert (tmp_path / "b.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_demo_whole_chain_small(tmp_path):
+    from ev3dgs import demo
+
+    result = demo.run(tmp_path, views=3, test_views=1, width=48, height=36, samples=2, quiet=True, iterations=20)
+    comp = __import__("json").loads((tmp_path / "comparison.json").read_text())
+    assert set(comp) == {"naive", "blur-only", "blur+event"}
+    assert all(v["test_psnr"] > 5 for v in comp.values()) and result["events"] > 0

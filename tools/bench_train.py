@@ -1,0 +1,71 @@
+"""What accuracy costs in time for the trainer: PSNR on the sharp test views against training wall time for
+naive, blur-only and blur+event on the --quick lego scene of `make demo`. JSON + PNG.
+
+    python tools/bench_train.py [--scene demo_out/lego.h5] [--iterations 1500] [--eval-every 250]
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from ev3dgs.train.compare import compare_variants, summary_table  # noqa: E402
+from ev3dgs.train.config import TrainConfig  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", help="scene .h5 (default: make the demo's quick lego scene)")
+    ap.add_argument("--iterations", type=int, default=1500)
+    ap.add_argument("--eval-every", type=int, default=250)
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--json", default="tools/results/bench_train.json")
+    ap.add_argument("--plot", default="tools/results/bench_train.png")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as d:
+        scene = args.scene
+        if scene is None:
+            from ev3dgs.demo import DEMO_RENDER, make_scene
+
+            scene = str(make_scene(Path(d) / "scene", quiet=True, **DEMO_RENDER))
+        base = TrainConfig(scene=scene, iterations=args.iterations, init_points=5000, threads=args.threads)
+        results = compare_variants(scene, Path(d) / "runs", base, eval_every=args.eval_every)
+    print(summary_table(results))
+    out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "iterations": args.iterations,
+           "variants": {k: {"test_psnr": v["metrics"]["test"]["psnr"], "test_ssim": v["metrics"]["test"]["ssim"],
+                            "train_sharp_psnr": v["metrics"]["train_sharp"]["psnr"],
+                            "blurry_input_psnr": v["metrics"]["blurry_input"]["psnr"],
+                            "train_seconds": v["train_seconds"], "gaussians": v["gaussians"], "curve": v["curve"]}
+                        for k, v in results.items()}}
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(out, indent=2))
+    plot(out, args.plot)
+    return 0
+
+
+def plot(out, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for name, v in out["variants"].items():
+        ax.plot([c["seconds"] for c in v["curve"]], [c["test_psnr"] for c in v["curve"]], "o-", ms=3, label=name)
+    blurry = next(iter(out["variants"].values()))["blurry_input_psnr"]
+    ax.axhline(blurry, color="grey", ls="--", lw=1, label="blurry input vs sharp (train views)")
+    ax.set_xlabel("training seconds (2-core CPU)")
+    ax.set_ylabel("PSNR on sharp test views (dB)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
