@@ -25,6 +25,13 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _box(mx, my, r, xmin, ymin, xmax, ymax):
+    """Pixel rectangle [x0, x1] x [y0, y1] of a Gaussian's radius box, clipped to [xmin, xmax] x [ymin, ymax]."""
+    return (max(xmin, int(np.ceil(mx - r))), min(xmax, int(np.floor(mx + r))),
+            max(ymin, int(np.ceil(my - r))), min(ymax, int(np.floor(my + r))))
+
+
 @njit(cache=True, nogil=True)
 def _bin(means2d, radii, order, width, height, tiles_x, tiles_y):
     """Counting sort of (tile, Gaussian) pairs; `order` is the depth order of the Gaussians.
@@ -34,12 +41,7 @@ def _bin(means2d, radii, order, width, height, tiles_x, tiles_y):
     rects = np.empty((order.shape[0], 4), np.int64)
     for j in range(order.shape[0]):
         g = order[j]
-        r = radii[g]
-        mx, my = means2d[g, 0], means2d[g, 1]
-        x0 = max(0, int(np.ceil(mx - r)))
-        x1 = min(width - 1, int(np.floor(mx + r)))
-        y0 = max(0, int(np.ceil(my - r)))
-        y1 = min(height - 1, int(np.floor(my + r)))
+        x0, x1, y0, y1 = _box(means2d[g, 0], means2d[g, 1], radii[g], 0, 0, width - 1, height - 1)
         if x0 > x1 or y0 > y1:
             rects[j, 0] = 1
             rects[j, 1] = 0
@@ -99,11 +101,7 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
             o = opacities[g]
             smax = sigma_max[g]
             # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
-            r = radii[g]
-            bx0 = max(x0, int(np.ceil(mx - r)))
-            bx1 = min(x0 + w - 1, int(np.floor(mx + r)))
-            by0 = max(y0, int(np.ceil(my - r)))
-            by1 = min(y0 + h - 1, int(np.floor(my + r)))
+            bx0, bx1, by0, by1 = _box(mx, my, radii[g], x0, y0, x0 + w - 1, y0 + h - 1)
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 for px in range(bx0, bx1 + 1):
@@ -179,11 +177,7 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
             o = opacities[g]
             gmx = gmy = ga = gb = gc = go = 0.0
             smax = sigma_max[g]
-            r = radii[g]
-            bx0 = max(x0, int(np.ceil(mx - r)))
-            bx1 = min(x0 + w - 1, int(np.floor(mx + r)))
-            by0 = max(y0, int(np.ceil(my - r)))
-            by1 = min(y0 + h - 1, int(np.floor(my + r)))
+            bx0, bx1, by0, by1 = _box(mx, my, radii[g], x0, y0, x0 + w - 1, y0 + h - 1)
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 for px in range(bx0, bx1 + 1):
