@@ -174,6 +174,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     (["train", "/nonexistent.h5", "--out", "X"], "no such file"),
     (["train", "SCENE", "--out", "X", "--subposes", "0"], "subposes"),
     (["train", "SCENE", "--out", "X", "--iterations", "0"], "iterations"),
+    (["train", "SCENE", "--out", "X", "--event-pairs", "11"], "event-pairs"),
     (["train", "SCENE", "--out", "X", "--device", "cuda"], "CUDA|cuda"),
     (["train", "SCENE", "--out", "X", "--resume"], "no checkpoint"),
     (["eval", "/nonexistent_run"], "not a finished training run"),

@@ -36,7 +36,9 @@ class TrainConfig:
         check(self.iterations >= 1, "--iterations must be >= 1")
         check(1 <= self.subposes <= 64, "--subposes must be in [1, 64]")
         check(self.event_weight >= 0, "--event-weight must be >= 0")
-        check(self.event_pairs >= 0, "--event-pairs must be >= 0")
+        n_pairs = self.subposes * (self.subposes - 1) // 2
+        check(0 <= self.event_pairs <= n_pairs,
+              f"--event-pairs must be in [0, {n_pairs}] ({self.subposes} sub-poses have {n_pairs} pairs)")
         check(self.blur_space in ("srgb", "linear"), "--blur-space must be srgb or linear")
         check(0 <= self.ssim_lambda <= 1, "ssim lambda must be in [0, 1]")
         check(0 <= self.sh_degree <= 3, "--sh-degree must be in [0, 3]")
