@@ -1,0 +1,104 @@
+"""What every recording reader returns, whatever the file format (AEDAT 4.0, 3.1, 2.0).
+
+Timestamps are int64 microseconds as stored in the file (AEDAT 4 uses Unix-epoch us). Frames keep the
+file's pixels and channel order (OpenCV order: GRAY, BGR or BGRA; 8 or 16 bit); `ev3dgs.io.davis` converts
+them to RGB for the scene file. Events come as `ev3dgs.events.Events` chunks (t, x, y with row 0 at the
+top, p +1/-1), streamed so that memory stays bounded by a few packets.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import Ev3dgsError
+
+
+class AedatError(Ev3dgsError):
+    """A corrupt or unsupported recording; the message names the byte offset where reading failed."""
+
+
+@dataclass
+class StreamInfo:
+    id: int
+    name: str                      # e.g. "events", "frames", "imu", "triggers"
+    kind: str                      # "events" | "frames" | "imu" | "triggers" | "other"
+    type_identifier: str = ""      # AEDAT 4 flatbuffer identifier: EVTS, FRME, IMUS, TRIG
+    source: str = ""               # camera / module that produced it
+    width: int = 0
+    height: int = 0
+    compression: str = "none"      # none | lz4 | lz4-high | zstd | zstd-high
+    packets: int = 0
+
+
+@dataclass
+class FrameData:
+    timestamp: int                 # the frame's own timestamp
+    exposure_start: int
+    exposure_end: int
+    frame_start: int               # start / end of the readout
+    frame_end: int
+    image: np.ndarray              # (H, W) or (H, W, C) uint8 or uint16, file channel order (OpenCV: BGR/BGRA)
+    position: tuple[int, int] = (0, 0)   # ROI offset (x, y) on the sensor
+    source: str = ""
+
+
+@dataclass
+class ImuData:
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    accel: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))       # g
+    gyro: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))        # deg/s
+    temperature: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))      # deg C
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+@dataclass
+class Triggers:
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+class RecordingReader:
+    """The interface every format's reader implements (aedat4.Aedat4Reader, aedat3.Aedat3Reader,
+    aedat2.Aedat2Reader). Use as a context manager. `stream` arguments take a stream id or name; None picks
+    the first stream of that kind. Problems that were salvaged (a truncated tail, a skipped corrupt packet)
+    are appended to `warnings` and also issued with warnings.warn; unrecoverable ones raise AedatError."""
+
+    path: str
+    warnings: list[str]
+    format: str                    # "aedat4" | "aedat3.1" | "aedat2"
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def streams(self) -> list[StreamInfo]:
+        raise NotImplementedError
+
+    def sensor_size(self) -> tuple[int, int]:
+        """(width, height) of the event sensor."""
+        raise NotImplementedError
+
+    def events(self, stream=None, start_us: int | None = None, end_us: int | None = None):
+        """Iterator of Events chunks (a packet or a few), in file order, restricted to [start, end)."""
+        raise NotImplementedError
+
+    def frames(self, stream=None):
+        """Iterator of FrameData in file order."""
+        raise NotImplementedError
+
+    def imu(self, stream=None) -> ImuData:
+        raise NotImplementedError
+
+    def triggers(self, stream=None) -> Triggers:
+        raise NotImplementedError
