@@ -1,0 +1,232 @@
+"""A DAVIS346 recording (AEDAT 4.0 / 3.1 / 2.0) -> scene.h5.
+
+Views are APS frames (every K-th, at most N, exposures of at least U us); each view's exposure window is the
+frame's [start of exposure, end of exposure). Events are kept whole or within a margin of the used exposures,
+the IMU is kept. Intrinsics come from a calibration file, or from pycolmap when there is none.
+
+Undistortion policy: with a calibration whose distortion is non-zero, the APS frames are undistorted with
+cv2.undistort keeping the same K, and every event's coordinates are undistorted to the nearest pixel
+(events that land outside the sensor are dropped), so the scene file is a pure pinhole camera and
+/camera/distortion is stored as zeros; the calibration's coefficients go to the file's config.
+
+Poses (unless poses=False): for every view, the event double integral (ev3dgs.io.edi) turns the blurry frame
+and the exposure's events into b+1 sharp latent frames at evenly spread times; pycolmap (SIFT, matching,
+incremental mapping) on all latent frames gives a pose per latent frame -> /train/poses, /train/pose_t, and
+its sparse points -> /points. A view is kept only if all its latent frames register.
+"""
+from __future__ import annotations
+
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .. import schema
+from ..errors import InputError
+from ..events import Events
+from .calibration import load_calibration
+from .recording import open_recording
+from .types import FrameData
+
+BAYER = ("RGGB", "BGGR", "GRBG", "GBRG")
+
+
+@dataclass(frozen=True)
+class DavisOptions:
+    every: int = 1
+    max_views: int | None = None
+    min_exposure_us: int = 0
+    events: str = "margin"            # "all" | "margin"
+    event_margin_ms: float = 10.0
+    subposes: int = 5                 # latent frames (and poses) per view
+    poses: bool = True
+    calibration: str | None = None
+    frames_stream: str | None = None
+    events_stream: str | None = None
+    pos_threshold: float = 0.2        # the recording does not store the bias-derived thresholds
+    neg_threshold: float = 0.2
+    color_filter: str = "none"        # the DVS colour filter of a colour DAVIS346: pass it, it is not in the file
+    min_registered: float = 0.5
+
+    def __post_init__(self):
+        if self.every < 1:
+            raise InputError("--every must be >= 1")
+        if self.max_views is not None and self.max_views < 1:
+            raise InputError("--max-views must be >= 1")
+        if self.events not in ("all", "margin"):
+            raise InputError("--events must be all or margin")
+        if self.subposes < 2 and self.poses:
+            raise InputError("--subposes must be >= 2 for pose estimation")
+        if self.color_filter not in ("none", *BAYER):
+            raise InputError(f"--color-filter must be none or one of {', '.join(BAYER)}")
+        if not (self.pos_threshold > 0 and self.neg_threshold > 0):
+            raise InputError("thresholds must be > 0")
+
+
+@dataclass
+class IngestStats:
+    path: Path
+    frames_in_file: int = 0
+    views: int = 0
+    registered: int | None = None
+    latent_frames: int = 0
+    events: int = 0
+    warnings: list = field(default_factory=list)
+
+
+def to_rgb8(image: np.ndarray) -> np.ndarray:
+    """A frame in the file's OpenCV order (GRAY, BGR, BGRA; 8 or 16 bit) -> RGB uint8."""
+    img = image
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise InputError(f"unsupported frame dtype {img.dtype}")
+    if img.ndim == 2 or img.shape[-1] == 1:
+        return np.repeat(img.reshape(img.shape[0], img.shape[1], 1), 3, axis=2)
+    if img.shape[-1] == 3:
+        return img[..., ::-1].copy()
+    if img.shape[-1] == 4:
+        return img[..., 2::-1].copy()
+    raise InputError(f"unsupported frame with {img.shape[-1]} channels")
+
+
+def select_frames(frames, opts: DavisOptions, width: int, height: int) -> tuple[list[FrameData], int]:
+    kept, total, eligible = [], 0, 0
+    for f in frames:
+        total += 1
+        if f.exposure_end - f.exposure_start < max(1, opts.min_exposure_us):
+            continue
+        if f.image.shape[:2] != (height, width) or tuple(f.position) != (0, 0):
+            continue  # an ROI frame: not a full view of the scene
+        if eligible % opts.every == 0 and (opts.max_views is None or len(kept) < opts.max_views):
+            kept.append(f)
+        eligible += 1
+    return kept, total
+
+
+def _merge_windows(windows: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    out = []
+    for s, e in sorted(windows):
+        if out and s <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], e))
+        else:
+            out.append((s, e))
+    return out
+
+
+def read_events(reader, opts: DavisOptions, views: list[FrameData]) -> Events:
+    if opts.events == "all" or not views:
+        parts = list(reader.events(opts.events_stream))
+    else:
+        m = int(opts.event_margin_ms * 1000)
+        parts = []
+        for s, e in _merge_windows([(v.exposure_start - m, v.exposure_end + m) for v in views]):
+            parts.extend(reader.events(opts.events_stream, s, e))
+    ev = Events.concatenate(parts)
+    if len(ev) and (np.diff(ev.t) < 0).any():  # packets of one stream out of order: restore time order
+        order = np.argsort(ev.t, kind="stable")
+        ev = Events(ev.t[order], ev.x[order], ev.y[order], ev.p[order])
+    return ev
+
+
+def undistort(images: list[np.ndarray], ev: Events, K: np.ndarray, dist: np.ndarray, width: int, height: int):
+    images = [cv2.undistort(img, K, dist, None, K) for img in images]
+    if len(ev):
+        pts = np.stack([ev.x, ev.y], axis=1).astype(np.float64).reshape(-1, 1, 2)
+        und = cv2.undistortPoints(pts, K, dist, P=K).reshape(-1, 2)
+        x, y = np.rint(und[:, 0]), np.rint(und[:, 1])
+        ok = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+        ev = Events(ev.t[ok], x[ok].astype(np.uint16), y[ok].astype(np.uint16), ev.p[ok])
+    return images, ev
+
+
+def estimate_view_poses(images: list[np.ndarray], ev: Events, views: list[FrameData], K, opts: DavisOptions):
+    """EDI latent frames per view -> pycolmap. Returns (kept view indices, poses (n,S,4,4), pose_t (n,S),
+    K used, points or None, registered count)."""
+    from .colmap import estimate_poses
+    from .edi import edi_latent_frames, edi_to_uint8
+
+    S = opts.subposes
+    latent_imgs, times = [], []
+    for img, v in zip(images, views):
+        t = np.round(np.linspace(v.exposure_start, v.exposure_end, S)).astype(np.int64)
+        w = ev.window(v.exposure_start, v.exposure_end + 1)
+        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0  # APS values ~ linear
+        lat = edi_latent_frames(gray, w.t, w.x, w.y, w.p, (v.exposure_start, v.exposure_end), t,
+                                opts.pos_threshold, opts.neg_threshold)
+        latent_imgs.extend(edi_to_uint8(frame) for frame in lat)
+        times.append(t)
+    with tempfile.TemporaryDirectory(prefix="ev3dgs_colmap_") as work:
+        res = estimate_poses(latent_imgs, K, Path(work), min_registered=opts.min_registered)
+    kept, poses = [], []
+    for i in range(len(views)):
+        ps = res.poses[i * S:(i + 1) * S]
+        if all(p is not None for p in ps):
+            kept.append(i)
+            poses.append(np.stack(ps))
+    if not kept:
+        raise InputError("no view had all its latent frames registered by pycolmap")
+    return kept, np.stack(poses), np.stack([times[i] for i in kept]), res.K, res, res.registered
+
+
+def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOptions(),
+                 quiet: bool = True) -> IngestStats:
+    out = Path(out)
+    stats = IngestStats(out)
+    with open_recording(path) as reader, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the reader keeps its own list; we report it once
+        W, H = reader.sensor_size()
+        views, stats.frames_in_file = select_frames(reader.frames(opts.frames_stream), opts, W, H)
+        if not views:
+            raise InputError(f"{path}: no usable APS frames (full-size, exposure >= {opts.min_exposure_us} us)")
+        ev = read_events(reader, opts, views)
+        imu = reader.imu()
+        stats.warnings = list(reader.warnings)
+        fmt = reader.format
+    images = [to_rgb8(v.image) for v in views]
+    if opts.color_filter == "none" and any(v.image.ndim == 3 and v.image.shape[-1] >= 3 for v in views):
+        stats.warnings.append("colour APS frames: a colour DAVIS346's DVS pixels sit under a Bayer filter that "
+                              "the file does not name; pass --color-filter so the trainer models it")
+    K, dist_in = None, np.zeros(5)
+    if opts.calibration:
+        cal = load_calibration(opts.calibration)
+        if (cal.width, cal.height) != (W, H):
+            raise InputError(f"{opts.calibration}: calibration is for {cal.width}x{cal.height}, the sensor is {W}x{H}")
+        K, dist_in = cal.K, cal.distortion
+        if np.any(dist_in != 0):
+            images, ev = undistort(images, ev, K, dist_in, W, H)
+    exposure = np.array([(v.exposure_start, v.exposure_end) for v in views], np.int64)
+    train_kw, points = {}, None
+    if opts.poses:
+        stats.latent_frames = len(views) * opts.subposes
+        kept, poses, pose_t, K, res, stats.registered = estimate_view_poses(images, ev, views, K, opts)
+        images = [images[i] for i in kept]
+        exposure = exposure[kept]
+        train_kw = dict(poses=poses, pose_t=pose_t)
+        if res.points is not None and len(res.points[0]):
+            points = schema.Points(xyz=res.points[0].astype(np.float32), rgb=res.points[1].astype(np.uint8))
+    if K is None:  # no calibration and no pose estimation: a nominal DAVIS346 lens, flagged in the config
+        f = 0.5 * W / np.tan(np.deg2rad(35))
+        K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1.0]])
+    stats.views, stats.events = len(images), len(ev)
+    scene = schema.Scene(
+        name=Path(path).stem, source="davis",
+        camera=schema.Camera(width=W, height=H, K=np.asarray(K, float), distortion=np.zeros(5)),
+        events=ev,
+        sensor=schema.EventSensor(pos_threshold=opts.pos_threshold, neg_threshold=opts.neg_threshold,
+                                  color_filter=opts.color_filter, refractory_us=0.0),
+        train=schema.Train(images=np.stack(images), exposure=exposure, **train_kw),
+        points=points,
+        imu=schema.Imu(t=imu.t, accel=imu.accel, gyro=imu.gyro, temperature=imu.temperature) if len(imu) else None,
+        config={"recording": str(path), "format": fmt, "options": opts.__dict__,
+                "intrinsics": "calibration file" if opts.calibration else
+                ("pycolmap estimate" if opts.poses else "nominal 70-degree guess (no calibration, no poses)"),
+                "input_distortion": dist_in.tolist(), "undistorted": bool(np.any(dist_in != 0)),
+                "frames_in_file": stats.frames_in_file, "registered_latent_frames": stats.registered,
+                "reader_warnings": stats.warnings},
+    )
+    schema.write(scene, out)
+    return stats

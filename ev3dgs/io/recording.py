@@ -1,0 +1,35 @@
+"""Open any supported recording by its magic line: AEDAT 4.0, 3.1 or 2.0."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .types import AedatError, RecordingReader
+
+MAGIC = {b"#!AER-DAT4.0": "aedat4", b"#!AER-DAT3.1": "aedat3.1", b"#!AER-DAT2.0": "aedat2"}
+
+
+def detect_format(path: str | Path) -> str:
+    p = Path(path)
+    if not p.is_file():
+        raise AedatError(f"{p}: no such file")
+    with open(p, "rb") as f:
+        head = f.read(16)
+    for magic, name in MAGIC.items():
+        if head.startswith(magic):
+            return name
+    raise AedatError(f"{p}: byte 0: not an AEDAT 2.0, 3.1 or 4.0 file (starts with {head[:12]!r})")
+
+
+def open_recording(path: str | Path) -> RecordingReader:
+    fmt = detect_format(path)
+    if fmt == "aedat4":
+        from .aedat4 import Aedat4Reader
+
+        return Aedat4Reader(path)
+    if fmt == "aedat3.1":
+        from .aedat3 import Aedat3Reader
+
+        return Aedat3Reader(path)
+    from .aedat2 import Aedat2Reader
+
+    return Aedat2Reader(path)
