@@ -45,8 +45,8 @@ def test_edi_recovers_sharp_subframes():
     gain = [psnr(latent[j], subs[k]) - psnr(blurry, subs[k]) for j, k in enumerate(idx)]
     gain_log = [psnr(np.log(latent[j]), np.log(subs[k]), 3.0) - psnr(np.log(blurry), np.log(subs[k]), 3.0)
                 for j, k in enumerate(idx)]
-    assert np.mean(gain) >= 3.0, gain          # measured ~ +4.7 dB linear
-    assert np.mean(gain_log) >= 3.0, gain_log  # measured ~ +6.5 dB in log
+    assert np.mean(gain) >= 3.0, gain          # measured +5.5 dB linear (8.7, 5.3, 0.2, 5.8, 7.4)
+    assert np.mean(gain_log) >= 3.0, gain_log  # measured +6.9 dB in log
     # the ends of the exposure are the most blurred, so they gain the most
     assert gain[0] > 5 and gain[-1] > 5
 
@@ -238,7 +238,7 @@ def test_estimate_poses_known_K(orbit_views, tmp_path):
     np.testing.assert_allclose(res.K, K, atol=1e-6)           # fixed intrinsics, convention round-trips
     rot, centre = pose_errors(res.poses, gt)
     orbit_size = np.linalg.norm(gt[0, :3, 3] - gt[-1, :3, 3])
-    assert rot < 2.0, rot                                       # measured ~0.37 deg
+    assert rot < 2.0, rot                                       # measured 0.35 deg
     assert centre < 0.02 * orbit_size, (centre, orbit_size)    # measured ~0.004 of a 3.6 chord
     for p in res.poses:
         if p is not None:

@@ -297,7 +297,7 @@ class Aedat4Reader(RecordingReader):
         except FlatbufError as e:
             raise AedatError(f"byte {off}: {kind} packet: corrupt flatbuffer ({e} of the decompressed payload)") from None
         name = ident.decode("ascii", "replace")
-        if name in KINDS and name != IDENTS[kind]:
+        if name in KINDS and kind in IDENTS and name != IDENTS[kind]:
             raise AedatError(f"byte {off}: packet identifier {name} in a {kind} stream (expected {IDENTS[kind]})")
         return tab, body
 
@@ -451,12 +451,12 @@ class Aedat4Reader(RecordingReader):
 
     def _summary(self, i: int, s: StreamInfo) -> tuple[int, int, int]:
         """(elements, first t, last t) of packet i, decoding it (used when there is no FileDataTable)."""
+        if s.kind not in KINDS.values():
+            return 0, -1, -1
         tab, body = self._decode(i, s.kind)
         if s.kind == "frames":
             t = tab.scalar(0, "q", 0)
             return 1, t, t
-        if s.kind not in ("events", "imu", "triggers"):
-            return 0, -1, -1
         start, n = tab.vector(0, 16 if s.kind == "events" else 4)
         if not n:
             return 0, -1, -1

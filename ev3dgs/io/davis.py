@@ -169,7 +169,7 @@ def estimate_view_poses(images: list[np.ndarray], ev: Events, views: list[FrameD
             poses.append(np.stack(ps))
     if not kept:
         raise InputError("no view had all its latent frames registered by pycolmap")
-    return kept, np.stack(poses), np.stack([times[i] for i in kept]), res.K, res, res.registered
+    return kept, np.stack(poses), np.stack([times[i] for i in kept]), res.K, res, res.num_registered
 
 
 def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOptions(),
@@ -206,8 +206,8 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
         images = [images[i] for i in kept]
         exposure = exposure[kept]
         train_kw = dict(poses=poses, pose_t=pose_t)
-        if res.points is not None and len(res.points[0]):
-            points = schema.Points(xyz=res.points[0].astype(np.float32), rgb=res.points[1].astype(np.uint8))
+        if res.points_xyz is not None and len(res.points_xyz):
+            points = schema.Points(xyz=res.points_xyz.astype(np.float32), rgb=res.points_rgb.astype(np.uint8))
     if K is None:  # no calibration and no pose estimation: a nominal DAVIS346 lens, flagged in the config
         f = 0.5 * W / np.tan(np.deg2rad(35))
         K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1.0]])
