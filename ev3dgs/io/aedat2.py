@@ -57,6 +57,7 @@ class _FrameBuilder:
         self.reset = self.signal = None
         self.t = [0, 0, 0, 0]                    # first reset, last reset, first signal, last signal
         self.in_signal = False
+        self.incomplete = self.orphans = 0
 
     def open(self) -> bool:
         return self.reset is not None
@@ -78,6 +79,28 @@ class _FrameBuilder:
                 self.t[k + 1] = int(tk[-1])
         if (rt == 1).any():
             self.in_signal = True
+
+    def feed(self, rt, row, x, adc, t) -> list[FrameData]:
+        """APS reads of one chunk (readout type 0 reset / 1 signal) -> the frames they complete."""
+        out = []
+        # a reset read after signal reads starts a new frame
+        was_sig = np.concatenate([[self.open() and self.in_signal], rt[:-1] == 1])
+        cuts = np.nonzero((rt == 0) & was_sig)[0].tolist()
+        for lo, hi in zip([0] + cuts, cuts + [len(rt)]):
+            if lo == hi:
+                continue
+            if self.open() and self.in_signal and rt[lo] == 0:
+                fr, ok = self.finish()
+                if fr is not None:
+                    out.append(fr)
+                    self.incomplete += not ok
+            if not self.open():
+                if rt[lo] == 1:                  # a segment starting with a signal read has no reset read
+                    self.orphans += hi - lo
+                    continue
+                self.start()
+            self.add(rt[lo:hi], row[lo:hi], x[lo:hi], adc[lo:hi], t[lo:hi])
+        return out
 
     def finish(self):
         """-> (FrameData or None, complete?)."""
@@ -117,10 +140,8 @@ class Aedat2Reader(RecordingReader):
             self._f.close()
             raise
         self.data_start = self._f.tell()
-        self.chip = ""
         m = re.search(r"^#\s*AEChip:\s*(\S+)", self.header, re.M)
-        if m:
-            self.chip = m.group(1)
+        self.chip = m.group(1) if m else ""
         self._size = sensor_size or self._guess_size()
         body = self.file_size - self.data_start
         self.n_records = body // 8
@@ -194,11 +215,8 @@ class Aedat2Reader(RecordingReader):
         for ch in self._scan(frames=False):
             ev = ch.events
             if start_us is not None or end_us is not None:
-                m = np.ones(len(ev), bool)
-                if start_us is not None:
-                    m &= ev.t >= start_us
-                if end_us is not None:
-                    m &= ev.t < end_us
+                m = (ev.t >= (-2**63 if start_us is None else start_us)) & (ev.t < (2**63 - 1 if end_us is None
+                                                                                   else end_us))
                 ev = Events(ev.t[m], ev.x[m], ev.y[m], ev.p[m])
             if len(ev):
                 yield ev
@@ -212,7 +230,7 @@ class Aedat2Reader(RecordingReader):
         self._check_stream(stream, "imu")
         ts, raws = [], []
         for ch in self._scan(frames=False):
-            if ch.imu_t is not None and len(ch.imu_t):
+            if ch.imu_t is not None:
                 ts.append(ch.imu_t)
                 raws.append(ch.imu_raw)
         if not ts:
@@ -239,14 +257,15 @@ class Aedat2Reader(RecordingReader):
     def info(self) -> dict:
         """Streams, counts, time range and file size (one pass over the file, cached)."""
         if self._info is None:
-            c = dict(events=0, on=0, off=0, frames=0, imu_samples=0, triggers=0)
+            c = dict(events=0, on=0, off=0, frames=0, imu_samples=0, triggers=0, special=0)
             t0, t1 = None, None
-            for ch in self._scan(frames=True, stats=c):
+            for ch in self._scan(frames=True):
                 n = len(ch.events)
                 c["events"] += n
                 c["on"] += ch.events.on_count
                 c["frames"] += len(ch.frames)
                 c["imu_samples"] += 0 if ch.imu_t is None else len(ch.imu_t)
+                c["special"] += 0 if ch.trig_t is None else len(ch.trig_t)
                 c["triggers"] += 0 if ch.trig_t is None else len(ch.trig_t)
                 if n:
                     lo, hi = int(ch.events.t.min()), int(ch.events.t.max())
@@ -260,13 +279,13 @@ class Aedat2Reader(RecordingReader):
         return self._info
 
     # ----- decoding -----
-    def _scan(self, frames: bool, stats: dict | None = None):
+    def _scan(self, frames: bool):
         """Decode the file chunk by chunk; state (timestamp wrap, IMU group, open frame) spans chunks."""
         w, h = self._size
         prev, offset = None, 0
         imu_carry = np.zeros((0, 2), np.int64)       # (address, t) of an incomplete IMU sample
         fb = _FrameBuilder(w, h)
-        n_bad = n_imu_drop = n_incomplete = n_orphan = n_special = 0
+        n_bad = n_imu_drop = 0
         self._f.seek(self.data_start)
         left = self.n_records
         while left > 0:
@@ -289,8 +308,8 @@ class Aedat2Reader(RecordingReader):
             typ = (addr >> 10) & 3
             x = ((addr >> 12) & 0x3FF).astype(np.int64)
             y = ((addr >> 22) & 0x1FF).astype(np.int64)
-            dvs = ~aps & (typ & 1 == 0)
-            special = ~aps & (typ & 1 == 1)
+            dvs = ~aps & ((typ & 1) == 0)
+            special = ~aps & ((typ & 1) == 1)
             inside = (x < w) & (y < h)
             n_bad += int(np.count_nonzero((dvs | (aps & (typ < 2))) & ~inside))
             m = dvs & inside
@@ -298,7 +317,6 @@ class Aedat2Reader(RecordingReader):
             ch = _Chunk(ev)
 
             if special.any():
-                n_special += int(np.count_nonzero(special))
                 code = addr[special] & 0x3FF
                 ch.trig_t = t[special]
                 ch.trig_kind = np.full(len(code), -1, np.int8)
@@ -313,24 +331,7 @@ class Aedat2Reader(RecordingReader):
             if frames:
                 a = aps & (typ < 2) & inside
                 if a.any():
-                    rt, row, xa, adc, ta = typ[a], h - 1 - y[a], x[a], (addr[a] & 0x3FF).astype(np.int32), t[a]
-                    # a reset read after signal reads starts a new frame
-                    was_sig = np.concatenate([[fb.in_signal if fb.open() else False], rt[:-1] == 1])
-                    cuts = np.nonzero((rt == 0) & was_sig)[0]
-                    for lo, hi in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(rt)]])):
-                        if lo == hi:
-                            continue
-                        if lo > 0 or (fb.open() and fb.in_signal and rt[lo] == 0):
-                            fr, ok = fb.finish()
-                            if fr is not None:
-                                ch.frames.append(fr)
-                                n_incomplete += not ok
-                        if not fb.open():
-                            if rt[lo] == 1 and not (rt[lo:hi] == 0).any():
-                                n_orphan += hi - lo
-                                continue
-                            fb.start()
-                        fb.add(rt[lo:hi], row[lo:hi], xa[lo:hi], adc[lo:hi], ta[lo:hi])
+                    ch.frames = fb.feed(typ[a], h - 1 - y[a], x[a], (addr[a] & 0x3FF).astype(np.int32), t[a])
             yield ch
 
         if frames and fb.open():
@@ -345,12 +346,10 @@ class Aedat2Reader(RecordingReader):
             self._warn(f"{n_imu_drop} IMU words outside complete 7-word samples ignored")
         if n_bad:
             self._warn(f"{n_bad} DVS/APS words with coordinates outside the {w}x{h} sensor ignored")
-        if frames and n_incomplete:
-            self._warn(f"{n_incomplete} APS frames with missing reset or signal reads (missing pixels are 0)")
-        if frames and n_orphan:
-            self._warn(f"{n_orphan} APS signal reads without reset reads ignored")
-        if stats is not None:
-            stats["special"] = n_special
+        if fb.incomplete:
+            self._warn(f"{fb.incomplete} APS frames with missing reset or signal reads (missing pixels are 0)")
+        if fb.orphans:
+            self._warn(f"{fb.orphans} APS signal reads without reset reads ignored")
 
     @staticmethod
     def _imu_groups(carry, addr, t):

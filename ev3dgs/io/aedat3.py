@@ -158,8 +158,8 @@ class Aedat3Reader(RecordingReader):
         for i, (kind, src) in enumerate(keys):
             multi = sum(1 for k, _ in keys if k == kind) > 1
             w, h = self._size if kind in ("events", "frames") else (0, 0)
-            out.append(StreamInfo(id=i, name=f"{kind}_{src}" if multi else kind, kind=kind,
-                                  source=self.sources.get(src, str(src)), width=w, height=h, packets=found[(kind, src)]))
+            out.append(StreamInfo(id=i, name=f"{kind}_{src}" if multi else kind, kind=kind, width=w, height=h,
+                                  source=self.sources.get(src, str(src)), packets=found[(kind, src)]))
         self._stream_src = {s.id: src for s, (_, src) in zip(out, keys)}
         return out
 
