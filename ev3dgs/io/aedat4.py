@@ -50,6 +50,18 @@ class AedatWarning(UserWarning):
 def _inflate(data: memoryview, comp: int, at: int) -> bytearray:
     """Decompress one LZ4/zstd frame holding a size-prefixed flatbuffer; output bounded by the size prefix,
     MAX_DECOMPRESSED and 1024x the compressed size (16 MiB at least), allocated only as it is produced."""
+    cap = min(MAX_DECOMPRESSED, max(16 << 20, 1024 * len(data)))
+    if comp in (1, 2) and 256 * len(data) <= cap:
+        # LZ4 cannot expand more than ~255x, so one-shot decompression is bounded; the frame header's content
+        # size (which lz4 would allocate up front) is checked first.
+        if lz4.frame.get_frame_info(data)["content_size"] > 256 * len(data):
+            raise AedatError(f"byte {at}: LZ4 frame header claims an impossible content size")
+        out = lz4.frame.decompress(data, return_bytearray=True)
+        total = 4 + struct.unpack_from("<I", out)[0] if len(out) >= 4 else 4
+        if len(out) < total:
+            raise AedatError(f"byte {at}: packet decompresses to {len(out)} bytes but its flatbuffer size "
+                             f"prefix says {total}")
+        return out
     if comp in (1, 2):
         dec, src = lz4.frame.LZ4FrameDecompressor(), [data]
 
@@ -66,27 +78,14 @@ def _inflate(data: memoryview, comp: int, at: int) -> bytearray:
             raise AedatError(f"byte {at}: packet decompresses to {len(out)} bytes, too short for a flatbuffer")
         out += chunk
     total = 4 + struct.unpack_from("<I", out)[0]
-    cap = min(MAX_DECOMPRESSED, max(16 << 20, 1024 * len(data)))
     if total > cap:
         raise AedatError(f"byte {at}: packet claims {total} decompressed bytes from {len(data)} compressed "
                          f"bytes (limit {cap})")
-    if total <= 64 * len(data) + (1 << 20):         # plausible: allocate once
-        buf, got = bytearray(total), 4
-        buf[:4] = out
-        view = memoryview(buf)
-        while got < total:
-            chunk = read(min(total - got, _CHUNK))
-            if not chunk:
-                break
-            view[got:got + len(chunk)] = chunk
-            got += len(chunk)
-        out = buf if got == total else out + buf[4:got]
-    else:                                             # implausible ratio: grow only as data really arrives
-        while len(out) < total:
-            chunk = read(min(total - len(out), _CHUNK))
-            if not chunk:
-                break
-            out += chunk
+    while len(out) < total:                   # grow only as output really arrives
+        chunk = read(min(total - len(out), _CHUNK))
+        if not chunk:
+            break
+        out += chunk
     if len(out) < total:
         raise AedatError(f"byte {at}: packet decompresses to {len(out)} bytes but its flatbuffer size prefix "
                          f"says {total}")
@@ -115,7 +114,6 @@ class Aedat4Reader(RecordingReader):
         self.path = os.fspath(path)
         self.warnings: list[str] = []
         self.skip_corrupt = skip_corrupt
-        self._sensor: tuple[int, int] | None = None
         try:
             self._f = open(self.path, "rb")
         except OSError as e:
@@ -136,7 +134,7 @@ class Aedat4Reader(RecordingReader):
         self.file_size = size = os.fstat(f.fileno()).st_size
         head = f.read(18)
         if head[:14] != MAGIC:
-            raise AedatError(f"byte 0: not an AEDAT 4.0 file (no '#!AER-DAT4.0' version line)")
+            raise AedatError("byte 0: not an AEDAT 4.0 file (no '#!AER-DAT4.0' version line)")
         if len(head) < 18:
             raise AedatError(f"byte 14: file ends inside the IOHeader size ({size} bytes)")
         n = struct.unpack_from("<I", head, 14)[0]
@@ -159,13 +157,16 @@ class Aedat4Reader(RecordingReader):
         if tp == -1:
             self._warn("no FileDataTable (interrupted recording?): walking the packets")
             self._walk(size, truncated_ok=True)
-        elif tp > size or tp < self.data_start:
-            kind = "past the end of the file" if tp > size else "before the data"
+        elif tp >= size or tp < self.data_start:
+            kind = "at or past the end of the file" if tp >= size else "before the data"
             self._warn(f"byte 18: FileDataTable position {tp} is {kind} ({size} bytes): the file is truncated "
                        "or its header corrupt; walking the packets")
             self._walk(size, truncated_ok=True)
         elif not self._load_table(tp, size):
             self._walk(tp, truncated_ok=False)
+        if not self._streams:    # no usable XML: one stream per id seen, typed from its first packet
+            self._streams = {int(i): StreamInfo(int(i), f"stream{int(i)}", "other", compression=COMPRESSIONS[comp])
+                             for i in np.unique(self._sid)}
         for s in self._streams.values():
             s.packets = int(np.count_nonzero(self._sid == s.id))
             if s.kind == "other" and s.packets:
@@ -232,10 +233,6 @@ class Aedat4Reader(RecordingReader):
         self._size = np.array(sizes, np.int64)
         self._sid = np.array(sids, np.int64)
         self._nel = self._t0 = self._t1 = None
-        if not self._streams:
-            self._streams = {int(s): StreamInfo(int(s), f"stream{int(s)}", "other",
-                                                compression=COMPRESSIONS[self.compression])
-                             for s in np.unique(self._sid)}
 
     def _load_table(self, tp: int, size: int) -> bool:
         """Index the packets from the FileDataTable; False (with a warning) if it is damaged."""
@@ -249,11 +246,8 @@ class Aedat4Reader(RecordingReader):
                 raise AedatError(f"byte {tp}: FileDataTable identifier is {ident!r}, not b'FTAB'")
             start, count = tab.vector(0, 4)
             a = table_vector(body, start, count, _FTAB_FIELDS)
-        except FlatbufError as e:
+        except (FlatbufError, AedatError) as e:
             self._warn(f"byte {tp}: corrupt FileDataTable ({e}): walking the packets")
-            return False
-        except AedatError as e:
-            self._warn(f"{e}: walking the packets")
             return False
         off, n, sid = a["offset"], a["size"].astype(np.int64), a["stream"].astype(np.int64)
         ends = off + n
@@ -302,7 +296,7 @@ class Aedat4Reader(RecordingReader):
         return tab, body
 
     def _packets(self, kind: str, stream, start_us=None, end_us=None):
-        """Yield (packet index, decoded value) for the chosen stream, skipping (with a warning) corrupt packets
+        """Yield the decoded packets of the chosen stream, skipping (with a warning) corrupt packets
         when skip_corrupt is set; packets outside [start, end) are skipped using the FileDataTable."""
         s = self._select(stream, kind)
         decode = getattr(self, "_decode_" + kind)
@@ -311,7 +305,7 @@ class Aedat4Reader(RecordingReader):
                                          or (end_us is not None and self._t0[i] >= end_us)):
                 continue
             try:
-                yield int(i), decode(int(i), s)
+                yield decode(int(i), s)
             except (AedatError, FlatbufError) as e:
                 msg = str(e) if isinstance(e, AedatError) else f"byte {int(self._off[i])}: corrupt {kind} packet ({e})"
                 if not self.skip_corrupt:
@@ -387,47 +381,39 @@ class Aedat4Reader(RecordingReader):
 
     def sensor_size(self, stream=None) -> tuple[int, int]:
         """(width, height) of the event sensor: from the XML, else the frames stream, else the events seen."""
-        evs = [s for s in self.streams() if s.kind == "events"]
-        if stream is not None or (evs and evs[0].width > 0):
-            s = self._select(stream, "events")
-            if s.width > 0 and s.height > 0:
-                return s.width, s.height
-        frm = [s for s in self.streams() if s.kind == "frames" and s.width > 0]
-        if not evs and frm:
+        s = self._select(stream, "events") if stream is not None or any(
+            x.kind == "events" for x in self.streams()) else None
+        if s is not None and s.width > 0 and s.height > 0:
+            return s.width, s.height
+        frm = [x for x in self.streams() if x.kind == "frames" and x.width > 0 and x.height > 0]
+        if frm:
             return frm[0].width, frm[0].height
-        if self._sensor is None:
-            w = h = 0
-            for ev in (self.events(stream) if evs else ()):
-                w, h = max(w, int(ev.x.max()) + 1), max(h, int(ev.y.max()) + 1)
-            if not w and frm:
-                w, h = frm[0].width, frm[0].height
-            if not w:
-                raise AedatError(f"{self.path}: sensor size unknown (no sizeX/sizeY and no events)")
-            self._sensor = (w, h)
-        return self._sensor
+        w = h = 0
+        for ev in (self.events(s) if s is not None else ()):
+            w, h = max(w, int(ev.x.max()) + 1), max(h, int(ev.y.max()) + 1)
+        if not w:
+            raise AedatError(f"{self.path}: sensor size unknown (no sizeX/sizeY and no events)")
+        return w, h
 
     def events(self, stream=None, start_us: int | None = None, end_us: int | None = None):
         """Iterator of Events, one chunk per packet in file order, restricted to start_us <= t < end_us."""
-        window = start_us is not None or end_us is not None
-        for _, ev in self._packets("events", stream, start_us, end_us):
-            if window:
-                keep = np.ones(len(ev), bool)
-                if start_us is not None:
-                    keep &= ev.t >= start_us
-                if end_us is not None:
-                    keep &= ev.t < end_us
+        lo = np.iinfo(np.int64).min if start_us is None else start_us
+        hi = np.iinfo(np.int64).max if end_us is None else end_us
+        for ev in self._packets("events", stream, start_us, end_us):
+            if start_us is not None or end_us is not None:
+                keep = (ev.t >= lo) & (ev.t < hi)
                 if not keep.all():
                     ev = Events(ev.t[keep], ev.x[keep], ev.y[keep], ev.p[keep])
             if len(ev):
                 yield ev
 
     def frames(self, stream=None):
-        for _, fr in self._packets("frames", stream):
+        for fr in self._packets("frames", stream):
             if fr is not None:
                 yield fr
 
     def imu(self, stream=None) -> ImuData:
-        parts = [a for _, a in self._packets("imu", stream)]
+        parts = list(self._packets("imu", stream))
         if not parts:
             return ImuData()
         c = {k: np.concatenate([p[k] for p in parts]) for k in _IMU_FIELDS}
@@ -435,7 +421,7 @@ class Aedat4Reader(RecordingReader):
                        c["temp"])
 
     def triggers(self, stream=None) -> Triggers:
-        parts = [a for _, a in self._packets("triggers", stream)]
+        parts = list(self._packets("triggers", stream))
         if not parts:
             return Triggers()
         return Triggers(np.concatenate([p["t"] for p in parts]), np.concatenate([p["kind"] for p in parts]))
