@@ -43,6 +43,9 @@ _FTAB_FIELDS = {"offset": (0, "<i8"), "stream": (1, "<i4", 0), "size": (1, "<u4"
                 "t_start": (3, "<i8"), "t_end": (4, "<i8")}
 
 
+_POLARITY = np.where(np.arange(256) != 0, 1, -1).astype(np.int8)  # stored 0/1 (any non-zero = ON) -> -1/+1
+
+
 class AedatWarning(UserWarning):
     """A recoverable problem in a recording (truncated tail, damaged FileDataTable, skipped packet)."""
 
@@ -300,12 +303,12 @@ class Aedat4Reader(RecordingReader):
         when skip_corrupt is set; packets outside [start, end) are skipped using the FileDataTable."""
         s = self._select(stream, kind)
         decode = getattr(self, "_decode_" + kind)
-        for i in np.flatnonzero(self._sid == s.id):
-            if self._t0 is not None and ((start_us is not None and self._t1[i] < start_us)
-                                         or (end_us is not None and self._t0[i] >= end_us)):
-                continue
+        todo = [int(i) for i in np.flatnonzero(self._sid == s.id)
+                if not (self._t0 is not None and ((start_us is not None and self._t1[i] < start_us)
+                                                  or (end_us is not None and self._t0[i] >= end_us)))]
+        for i in todo:
             try:
-                yield decode(int(i), s)
+                yield decode(i, s)
             except (AedatError, FlatbufError) as e:
                 msg = str(e) if isinstance(e, AedatError) else f"byte {int(self._off[i])}: corrupt {kind} packet ({e})"
                 if not self.skip_corrupt:
@@ -316,8 +319,9 @@ class Aedat4Reader(RecordingReader):
         tab, body = self._decode(i, "events")
         start, n = tab.vector(0, EVENT_DTYPE.itemsize)
         a = np.frombuffer(body, EVENT_DTYPE, count=n, offset=start)
-        return Events(a["t"].copy(), a["x"].astype(np.uint16), a["y"].astype(np.uint16),
-                      (a["p"] != 0).astype(np.int8) * np.int8(2) - np.int8(1))
+        # t, x, y stay strided views into the decompressed packet (no copies: the packet buffer lives as long
+        # as the chunk); coordinates are non-negative, so int16 -> uint16 is a reinterpretation
+        return Events(a["t"], a["x"].view(np.uint16), a["y"].view(np.uint16), _POLARITY[a["p"]])
 
     def _decode_frames(self, i: int, s: StreamInfo) -> FrameData | None:
         tab, body = self._decode(i, "frames")
