@@ -174,14 +174,16 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
 
     # APS frames: mean of the rendered frames inside each exposure window, through the ISP
     t0 = time.perf_counter()
-    linear = np.concatenate([results[k]["frames"] for k in keys]) if len(keys) > 1 else results[keys[0]]["frames"]
+    def linear(a: int, b: int) -> np.ndarray:   # rendered frames a..b-1 without copying the whole video
+        return np.concatenate([results[keys[g // CHUNK]]["frames"][g % CHUNK][None] for g in range(a, b)])
+
     aps = []
     for j in range(n_frames):
         a, b = np.searchsorted(t_rel, [soe[j], eoe[j]], side="left")
         if b <= a:  # no rendered frame inside a very short exposure: the nearest one
             a = int(np.argmin(np.abs(t_rel - (soe[j] + eoe[j]) / 2)))
             b = a + 1
-        srgb = blur_frames(linear[a:b], spec.sensor.isp, spec.sensor.sensor_noise, seed=seed * 100003 + j)
+        srgb = blur_frames(linear(a, b), spec.sensor.isp, spec.sensor.sensor_noise, seed=seed * 100003 + j)
         s, e = int(EPOCH_US + soe[j]), int(EPOCH_US + eoe[j])
         aps.append(FrameData(timestamp=s, exposure_start=s, exposure_end=e, frame_start=s - READOUT_US,
                              frame_end=e + READOUT_US, image=_gray(srgb), source="DAVIS346_SIM"))
