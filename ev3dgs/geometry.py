@@ -120,3 +120,42 @@ def interpolate_pose(poses: np.ndarray, pose_t: np.ndarray, t: float) -> np.ndar
     out[:3, :3] = quat_to_matrix(slerp(matrix_to_quat(poses[j][:3, :3]), matrix_to_quat(poses[j + 1][:3, :3]), a))
     out[:3, 3] = (1 - a) * poses[j][:3, 3] + a * poses[j + 1][:3, 3]
     return out
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising ||dst - (s R src + t)|| over point sets (N, 3) (Umeyama 1991)."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    var = (a**2).sum() / len(src)
+    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
+    return s, R, md - s * R @ ms
+
+
+def pose_errors(est_c2w: np.ndarray, gt_c2w: np.ndarray) -> dict:
+    """Camera poses against ground truth in an arbitrary similarity frame. Centres: Umeyama alignment of the
+    camera centres, then the centre error (ground-truth units, and relative to the trajectory extent).
+    Orientations: the one rotation that best maps the estimated orientations onto the true ones (chordal
+    mean), then each camera's angle error: a short, nearly planar path constrains the centre-based rotation
+    poorly, which would otherwise show up as a spurious common rotation error."""
+    est, gt = np.asarray(est_c2w, float), np.asarray(gt_c2w, float)
+    s, R, t = umeyama(est[:, :3, 3], gt[:, :3, 3])
+    centres = (s * (R @ est[:, :3, 3].T)).T + t
+    d_centre = np.linalg.norm(centres - gt[:, :3, 3], axis=1)
+    U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", gt[:, :3, :3], est[:, :3, :3]))
+    R_rot = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    rot = R_rot @ est[:, :3, :3]
+    cos = (np.einsum("nij,nij->n", rot, gt[:, :3, :3]) - 1) / 2
+    d_rot = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    extent = float(np.linalg.norm(gt[:, :3, 3].max(0) - gt[:, :3, 3].min(0))) or 1.0
+    rot_c = R @ est[:, :3, :3]  # with the centre-based rotation too, for reference
+    d_rot_c = np.degrees(np.arccos(np.clip((np.einsum("nij,nij->n", rot_c, gt[:, :3, :3]) - 1) / 2, -1, 1)))
+    return {"rotation_deg_median": float(np.median(d_rot)), "rotation_deg_max": float(d_rot.max()),
+            "rotation_deg_median_centre_aligned": float(np.median(d_rot_c)),
+            "centre_error_median": float(np.median(d_centre)), "centre_error_max": float(d_centre.max()),
+            "centre_error_rel_extent": float(np.median(d_centre) / extent), "scale": s, "n": len(est)}

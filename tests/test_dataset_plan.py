@@ -117,3 +117,22 @@ def test_overrides_are_validated():
     with pytest.raises(ConfigError, match="render size"):
         resolve_render(spec, width=100000)
     assert resolve_render(spec, quick=True, views=2).views == 2
+
+
+def test_pose_errors_after_similarity_alignment():
+    from ev3dgs.geometry import pose_errors, umeyama
+
+    rng = np.random.default_rng(0)
+    gt = np.stack([look_at(rng.normal(size=3) * 3 + [0, 0, 4], [0, 0, 0]) for _ in range(12)])
+    s, R = 0.37, rotvec_to_matrix(np.array([0.3, -0.2, 0.9]))
+    t = np.array([1.0, -2.0, 0.5])
+    est = gt.copy()  # the same cameras seen in another frame: x_est = s R x_gt + t
+    est[:, :3, 3] = (s * (R @ gt[:, :3, 3].T)).T + t
+    est[:, :3, :3] = R @ gt[:, :3, :3]
+    s2, R2, t2 = umeyama(est[:, :3, 3], gt[:, :3, 3])
+    assert s2 == pytest.approx(1 / s) and np.allclose(R2, R.T, atol=1e-9)
+    e = pose_errors(est, gt)
+    assert e["rotation_deg_max"] < 1e-6 and e["centre_error_max"] < 1e-9
+    est[3, :3, :3] = rotvec_to_matrix(np.array([0, 0, math.radians(2.0)])) @ est[3, :3, :3]
+    e = pose_errors(est, gt)  # one camera off by 2 deg: it dominates; the others are off by its share
+    assert 1.6 < e["rotation_deg_max"] <= 2.0 and e["rotation_deg_median"] < 0.3

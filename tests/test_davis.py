@@ -28,8 +28,15 @@ def test_shared_recording_ingests_exactly(tmp_path):
     assert tuple(sc.train.exposure[0]) == (1633953690976518, 1633953690981291)
     images = np.asarray(sc.train.images)
     assert images.shape == (3, 260, 346, 3)
-    assert int(images[0, ..., 0].astype(np.int64).sum()) == 4_587_151          # GRAY -> RGB keeps the pixels
-    assert int(images[..., 1].astype(np.int64).sum()) == 13_809_230
+    from ev3dgs.io.aedat4 import Aedat4Reader
+    from ev3dgs.sim.isp import linear_to_srgb
+
+    with Aedat4Reader(SHARED) as r:
+        raw = np.stack([f.image for f in r.frames()])
+    assert int(raw[0].astype(np.int64).sum()) == 4_587_151 and int(raw.astype(np.int64).sum()) == 13_809_230
+    # the APS frames are linear in light; the scene stores them sRGB-encoded (the schema's images are sRGB)
+    lut = np.round(255 * linear_to_srgb(np.arange(256) / 255.0)).astype(np.uint8)
+    assert np.array_equal(images[..., 0], lut[raw]) and np.array_equal(images[..., 2], lut[raw])
     assert len(sc.imu.t) == 130 and int(sc.imu.t[0]) == 1633953690976628
     assert sc.imu.temperature[0] == pytest.approx(27.752941, abs=1e-5)
     assert np.allclose(sc.imu.accel[0], [-0.060425, -0.991211, -0.097412], atol=1e-5)

@@ -267,7 +267,7 @@ def test_record_small_end_to_end(tmp_path):
                samples=4)
     assert s["frames"] == 6 and s["imu"] == 601 and s["events"] > 0 and s["rendered"] == 61
     assert set(s["seconds"]) >= {"render", "events", "frames", "imu", "write"}
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.aedat4", "rec.trajectory.npz"]   # cache removed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.aedat4", "rec.calibration.toml", "rec.trajectory.npz"]   # cache removed
 
     r, ev, frames, imu, _ = read_dv(out)
     assert r.getEventResolution() == (96, 72) and r.getFrameResolution() == (96, 72)

@@ -89,6 +89,19 @@ def _make_dataset(args) -> int:
     return 0
 
 
+def _record(args) -> int:
+    from ..sim.record import record
+
+    w, h = args.size if args.size else (346, 260)
+    info = record(args.scene, args.out, seconds=args.seconds, fps=args.fps, exposure_ms=args.exposure_ms,
+                  render_rate_hz=args.render_rate, width=w, height=h, samples=args.samples, seed=args.seed,
+                  workers=args.workers, quiet=args.quiet)
+    if not args.quiet:
+        print(f"{info['frames']} APS frames, {info['events']} events, {info['imu']} IMU samples over "
+              f"{args.seconds} s -> {args.out} (+ ground-truth trajectory .trajectory.npz)")
+    return 0
+
+
 def _list_scenes(args) -> int:
     from ..sim.scenes import builtin_scenes, load_scene
 
@@ -134,6 +147,19 @@ def build_parser():
     m.add_argument("--keep-cache", action="store_true", help="keep the rendered views beside the output")
     m.add_argument("--quiet", action="store_true")
     m.set_defaults(func=_make_dataset)
+    r = sub.add_parser("record", help="a DAVIS346-like AEDAT 4.0 recording of a scene along a hand-held path")
+    r.add_argument("--scene", required=True, help="built-in scene name or a scene .toml")
+    r.add_argument("--out", required=True, help="output .aedat4 (the ground truth goes beside it)")
+    r.add_argument("--seconds", type=float, default=2.0)
+    r.add_argument("--fps", type=float, default=10.0, help="APS frames per second")
+    r.add_argument("--exposure-ms", type=float, default=50.0)
+    r.add_argument("--render-rate", type=float, default=250.0, help="rendered frames per second (event input)")
+    r.add_argument("--size", type=_size, help="sensor size WxH (default 346x260)")
+    r.add_argument("--samples", type=int, default=8)
+    r.add_argument("--workers", type=int, default=1)
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--quiet", action="store_true")
+    r.set_defaults(func=_record)
     ls = sub.add_parser("list-scenes", help="the built-in scenes: names first, then descriptions")
     ls.set_defaults(func=_list_scenes)
     return p

@@ -29,6 +29,7 @@ from ..errors import InputError
 from ..events import Events
 from .calibration import load_calibration
 from .recording import open_recording
+from .edi import linear_to_srgb
 from .types import FrameData
 
 BAYER = ("RGGB", "BGGR", "GRBG", "GBRG")
@@ -50,6 +51,7 @@ class DavisOptions:
     neg_threshold: float = 0.2
     color_filter: str = "none"        # the DVS colour filter of a colour DAVIS346: pass it, it is not in the file
     min_registered: float = 0.5
+    aps_linear: bool = True           # DAVIS APS frames are linear in light: sRGB-encode them for the scene
 
     def __post_init__(self):
         if self.every < 1:
@@ -78,7 +80,7 @@ class IngestStats:
 
 
 def to_rgb8(image: np.ndarray) -> np.ndarray:
-    """A frame in the file's OpenCV order (GRAY, BGR, BGRA; 8 or 16 bit) -> RGB uint8."""
+    """A frame in the file's OpenCV order (GRAY, BGR, BGRA; 8 or 16 bit) -> RGB uint8 (values unchanged)."""
     img = image
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
@@ -154,7 +156,7 @@ def estimate_view_poses(images: list[np.ndarray], ev: Events, views: list[FrameD
     for img, v in zip(images, views):
         t = np.round(np.linspace(v.exposure_start, v.exposure_end, S)).astype(np.int64)
         w = ev.window(v.exposure_start, v.exposure_end + 1)
-        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0  # APS values ~ linear
+        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0  # APS values are linear
         lat = edi_latent_frames(gray, w.t, w.x, w.y, w.p, (v.exposure_start, v.exposure_end), t,
                                 opts.pos_threshold, opts.neg_threshold)
         latent_imgs.extend(edi_to_uint8(frame) for frame in lat)
@@ -212,6 +214,9 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
         f = 0.5 * W / np.tan(np.deg2rad(35))
         K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1.0]])
     stats.views, stats.events = len(images), len(ev)
+    if opts.aps_linear:  # the schema's images are sRGB; a DAVIS APS frame is linear in light
+        lut = np.round(255 * linear_to_srgb(np.arange(256) / 255.0)).astype(np.uint8)
+        images = [lut[img] for img in images]
     scene = schema.Scene(
         name=Path(path).stem, source="davis",
         camera=schema.Camera(width=W, height=H, K=np.asarray(K, float), distortion=np.zeros(5)),

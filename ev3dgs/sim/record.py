@@ -8,8 +8,8 @@ output so an interrupted run resumes), then
   * events: one continuous DVSSimulator stream over every rendered frame (the scene's sensor effects);
   * APS frames at `fps`: frame i exposes [t_i, t_i + exposure) with t_i = READOUT_US + i / fps; the rendered
     frames inside that window are averaged in linear light through the ISP (blur_frames, with the scene's
-    sensor noise) and converted to GRAY 8-bit (Rec.601 luma of the sRGB image, as OpenCV's BGR2GRAY; the
-    DAVIS346 is monochrome). startOfFrame / endOfFrame = exposure start - READOUT_US / end + READOUT_US;
+    sensor noise) and converted to GRAY 8-bit LINEAR luminance, as a DAVIS346 APS reads out (no tone
+    curve; the DAVIS346 is monochrome). startOfFrame / endOfFrame = exposure start - READOUT_US / end + READOUT_US;
     the frame's own timestamp is the start of exposure (as dv-processing 2.x writes it);
   * IMU at IMU_RATE_HZ from the analytic trajectory. IMU axes = the camera's OpenCV axes (x right, y down,
     z forward): gyro = angular velocity of the camera in its own frame (deg/s); accel = specific force
@@ -37,6 +37,7 @@ from ..errors import InputError
 from ..geometry import intrinsics, look_at
 from ..io.aedat4_writer import write_aedat4
 from ..io.types import FrameData, ImuData
+from ..sensor import LUMINANCE_WEIGHTS
 from .blur import blur_frames
 from .dataset import render_all
 from .dvs import DVSSimulator
@@ -47,7 +48,6 @@ READOUT_US = 1000
 IMU_RATE_HZ = 1000
 GRAVITY = 9.80665
 CHUNK = 25
-LUMA = np.array([0.299, 0.587, 0.114])   # R, G, B weights (Rec.601, OpenCV's RGB2GRAY)
 
 
 class Trajectory:
@@ -105,7 +105,12 @@ def imu_samples(traj: Trajectory, t_s: np.ndarray, h: float = 5e-4) -> tuple[np.
 
 
 def _gray(srgb: np.ndarray) -> np.ndarray:
-    return np.clip(np.round(srgb.astype(np.float64) @ LUMA), 0, 255).astype(np.uint8)
+    """A DAVIS346 APS frame is LINEAR in light (no tone curve): decode the developed sRGB frame (which carries
+    the ISP's noise and clipping) back to linear light and take its luminance, 8-bit."""
+    from .isp import srgb_to_linear
+
+    lin = srgb_to_linear(srgb) @ LUMINANCE_WEIGHTS
+    return np.clip(np.round(255.0 * lin), 0, 255).astype(np.uint8)
 
 
 def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, exposure_ms: float = 50,
@@ -212,6 +217,11 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
     timing["write"] = time.perf_counter() - t0
     if not keep_cache:
         shutil.rmtree(cache, ignore_errors=True)
+    # the ground-truth intrinsics as a calibration file `ev3dgs-ingest davis --calibration` reads
+    K_true = np.asarray(K, float)
+    (out.parent / f"{out.stem}.calibration.toml").write_text(
+        f"width = {W}\nheight = {H}\nfx = {K_true[0, 0]!r}\nfy = {K_true[1, 1]!r}\n"
+        f"cx = {K_true[0, 2]!r}\ncy = {K_true[1, 2]!r}\n")
     return {"path": str(out), "trajectory": str(traj_path), "scene": spec.name, "width": W, "height": H,
             "frames": n_frames, "events": int(n_events), "imu": len(imu), "rendered": len(poses),
             "rendered_now": rendered, "duration_us": duration_us, "start_us": EPOCH_US,
