@@ -25,6 +25,15 @@ def subparsers(p: argparse.ArgumentParser):
     return p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
 
+def dispatch(build_parser: Callable[[], argparse.ArgumentParser], argv: list[str] | None = None) -> int:
+    """Parse argv with the CLI's parser and call the chosen sub-command (its `func`), with one-line errors."""
+    def _main(argv):
+        args = build_parser().parse_args(argv)
+        return args.func(args)
+
+    return run(_main, argv)
+
+
 def run(main: Callable[[list[str] | None], int], argv: list[str] | None = None) -> int:
     """Call main; turn our errors into `error: ...` on stderr and exit code 2."""
     try:

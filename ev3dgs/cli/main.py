@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from .common import parser, run, subparsers
+from .common import dispatch, parser, subparsers
 
 
 def _train(args) -> int:
@@ -141,13 +141,8 @@ def build_parser():
     return p
 
 
-def _main(argv):
-    args = build_parser().parse_args(argv)
-    return args.func(args)
-
-
 def main(argv: list[str] | None = None) -> int:
-    return run(_main, argv)
+    return dispatch(build_parser, argv)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import os
 import re
-import warnings as _warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -179,11 +178,6 @@ class Aedat2Reader(RecordingReader):
         if self.chip:
             self._warn(f"unknown AEChip {self.chip!r}: assuming a DAVIS346 (346x260)")
         return (346, 260)
-
-    def _warn(self, msg: str) -> None:
-        if msg not in self.warnings:
-            self.warnings.append(msg)
-            _warnings.warn(f"{self.path}: {msg}", stacklevel=3)
 
     # ----- interface -----
     def close(self) -> None:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import os
 import re
 import struct
-import warnings as _warnings
 
 import numpy as np
 
@@ -93,11 +92,6 @@ class Aedat3Reader(RecordingReader):
                     return size
         self._warn(f"unknown camera {list(self.sources.values())!r}: assuming a DAVIS346 (346x260)")
         return (346, 260)
-
-    def _warn(self, msg: str) -> None:
-        if msg not in self.warnings:
-            self.warnings.append(msg)
-            _warnings.warn(f"{self.path}: {msg}", stacklevel=3)
 
     def close(self) -> None:
         self._f.close()

@@ -7,6 +7,7 @@ top, p +1/-1), streamed so that memory stays bounded by a few packets.
 """
 from __future__ import annotations
 
+import warnings as _warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,6 +82,12 @@ class RecordingReader:
 
     def close(self) -> None:
         raise NotImplementedError
+
+    def _warn(self, msg: str) -> None:
+        """Record a salvaged problem once, and issue it as a Python warning."""
+        if msg not in self.warnings:
+            self.warnings.append(msg)
+            _warnings.warn(f"{self.path}: {msg}", stacklevel=3)
 
     def streams(self) -> list[StreamInfo]:
         raise NotImplementedError
