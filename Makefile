@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: setup test test-slow demo bench clean
+.PHONY: setup test test-slow demo bench study-quick study clean
 
 setup: $(STAMP)
 
@@ -29,6 +29,17 @@ demo: setup
 
 bench: setup
 	$(BIN)/python tools/bench_sim.py --json tools/results/bench_sim.json --plot tools/results/bench_sim.png
+
+# accuracy against time: reduced studies in well under 15 minutes on 2 cores; `make study` for the full ones
+study-quick: setup
+	$(BIN)/python tools/study_sim.py --quick
+	$(BIN)/python tools/study_render.py --quick
+	$(BIN)/python tools/study_train.py --quick
+
+study: setup
+	$(BIN)/python tools/study_sim.py
+	$(BIN)/python tools/study_render.py
+	$(BIN)/python tools/study_train.py
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache

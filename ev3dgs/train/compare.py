@@ -20,13 +20,14 @@ VARIANTS = {
 def compare_variants(scene: str | Path, out_dir: str | Path, base: TrainConfig | None = None,
                      eval_every: int = 0, quiet: bool = True, variants=tuple(VARIANTS)) -> dict:
     """Train each variant into out_dir/<variant>; returns {variant: {"metrics", "curve", "train_seconds"}}.
-    With eval_every > 0 the test views are scored along the way; evaluation time is not counted in the
-    curve's training seconds."""
+    `variants` names entries of VARIANTS, or is a dict {name: TrainConfig overrides}. With eval_every > 0 the
+    test views are scored along the way; evaluation time is not counted in the curve's training seconds."""
     base = base or TrainConfig(scene=str(scene))
+    table = variants if isinstance(variants, dict) else {name: VARIANTS[name] for name in variants}
     results = {}
-    for name in variants:
-        cfg = replace(base, scene=str(scene), **VARIANTS[name])
-        run = Path(out_dir) / name
+    for name, overrides in table.items():
+        cfg = replace(base, scene=str(scene), **overrides)
+        run = Path(out_dir) / name.replace(" ", "_").replace("/", "_")
         trainer = Trainer(cfg, run, quiet=quiet)
         curve, clock = [], {"train": 0.0, "last": time.perf_counter()}
 
