@@ -79,7 +79,8 @@ def _make_dataset(args) -> int:
     render = resolve_render(spec, args.quick, width=w, height=h, views=args.views, test_views=args.test_views,
                             subframes=args.subframes, exposure_ms=args.exposure_ms, samples=args.samples)
     stats = make_dataset(spec, render, args.out, blend=args.blend, workers=args.workers, seed=args.seed,
-                         quiet=args.quiet, keep_cache=args.keep_cache)
+                         quiet=args.quiet, keep_cache=args.keep_cache, executor=args.executor,
+                         address=args.address)
     if not args.quiet:
         sec = stats.seconds
         print(f"{spec.name}: {render.views} views + {render.test_views} test views at {render.width}x{render.height}, "
@@ -141,7 +142,11 @@ def build_parser():
     m.add_argument("--subframes", type=int, help="sub-frames rendered per exposure (default 17)")
     m.add_argument("--exposure-ms", type=float, help="exposure time (default 100 ms)")
     m.add_argument("--samples", type=int, help="Cycles samples per pixel")
-    m.add_argument("--workers", type=int, default=1, help="Blender worker processes rendering in parallel")
+    m.add_argument("--workers", type=int, default=1, help="Blender processes (or Ray actors) rendering in parallel")
+    m.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="where the Blender workers run: local processes, or Ray actors (needs ev3dgs[ray])")
+    m.add_argument("--address", help="Ray cluster address (HEAD:6379, auto, ray://HEAD:10001); "
+                                     "default: a local Ray instance. Only with --executor ray")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--quick", action="store_true", help="small images, few views and samples (minutes on 2 cores)")
     m.add_argument("--keep-cache", action="store_true", help="keep the rendered views beside the output")

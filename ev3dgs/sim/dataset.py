@@ -7,10 +7,9 @@ file is written, unless keep_cache. The scene file itself is written to a tempor
 """
 from __future__ import annotations
 
-import concurrent.futures as cf
+import contextlib
 import hashlib
 import json
-import multiprocessing
 import os
 import shutil
 import sys
@@ -76,10 +75,15 @@ def _progress(total: int, quiet: bool):
 
 
 def render_all(jobs: dict[str, np.ndarray], init_kwargs: dict, cache: Path, workers: int,
-               quiet: bool) -> tuple[dict[str, dict], dict, int]:
-    """Render every job (key -> poses) not yet in the cache. Returns (results by key, scene info, count)."""
-    from ev3dgs_blender import worker
+               quiet: bool, executor: str = "local", address: str | None = None) -> tuple[dict[str, dict], dict, int]:
+    """Render every job (key -> poses) not yet in the cache. Returns (results by key, scene info, count).
 
+    executor: "local" (a pool of `workers` spawned Blender processes) or "ray" (`workers` Ray actors on a local
+    Ray instance, or on the cluster at `address`); see ev3dgs.sim.executors. Either way this process writes
+    the cache."""
+    from .executors import RenderFailed, WorkerCrashed, make_executor
+
+    ex = make_executor(executor, workers=workers, address=address, quiet=quiet)
     results, todo = {}, {}
     for key, poses in jobs.items():
         got = _load_npz(cache / f"{key}.npz")
@@ -93,21 +97,17 @@ def render_all(jobs: dict[str, np.ndarray], init_kwargs: dict, cache: Path, work
         return results, info, 0
     bar = _progress(len(jobs), quiet)
     bar.update(len(results))
-    ctx = multiprocessing.get_context("spawn")
     try:
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=worker.init,
-                                    initargs=(init_kwargs,)) as pool:
-            futures = [pool.submit(worker.render_poses, k, p) for k, p in todo.items()]
-            for fut in cf.as_completed(futures):
-                key, frames, readback, info = fut.result()
+        with contextlib.closing(ex.render(init_kwargs, todo)) as done:  # closing stops the workers
+            for key, frames, readback, info in done:
                 _save_npz(cache / f"{key}.npz", frames=frames, poses=readback)
                 results[key] = {"frames": frames, "poses": readback}
                 info_path.write_text(json.dumps(info))
                 bar.update(1)
-    except cf.process.BrokenProcessPool:
+    except WorkerCrashed:
         raise Ev3dgsError(f"a Blender worker crashed; {len(results)} of {len(jobs)} views are cached in "
                           f"{cache}, re-run the same command to resume") from None
-    except (ValueError, RuntimeError, OSError) as e:  # raised inside a worker (bad params, bad .blend)
+    except (RenderFailed, ValueError, RuntimeError, OSError) as e:  # raised inside a worker (bad params, bad .blend)
         raise Ev3dgsError(f"rendering failed: {e}") from None
     finally:
         bar.close()
@@ -120,7 +120,8 @@ def _to_srgb(linear: np.ndarray, spec: SceneSpec) -> np.ndarray:
 
 
 def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | Path | None = None,
-                 workers: int = 1, seed: int = 0, quiet: bool = False, keep_cache: bool = False) -> DatasetStats:
+                 workers: int = 1, seed: int = 0, quiet: bool = False, keep_cache: bool = False,
+                 executor: str = "local", address: str | None = None) -> DatasetStats:
     out = Path(out)
     if out.suffix not in (".h5", ".hdf5"):
         raise InputError(f"--out must end in .h5, got {out}")
@@ -133,6 +134,9 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
         raise InputError(f"scene {spec.name!r} names no builder; give --blend FILE")
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
+    from .executors import make_executor
+
+    make_executor(executor, workers=workers, address=address)  # a bad --executor or a missing ray fails here
     stats = DatasetStats(out)
     W, H = render.width, render.height
     K = intrinsics(W, H, render.fov_deg)
@@ -148,7 +152,8 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
                        samples=render.samples, denoise=render.denoise, background=list(render.background),
                        seed=seed)
     t0 = time.perf_counter()
-    results, info, stats.views_rendered = render_all(jobs, init_kwargs, cache, workers, quiet)
+    results, info, stats.views_rendered = render_all(jobs, init_kwargs, cache, workers, quiet,
+                                                     executor=executor, address=address)
     stats.views_cached = len(jobs) - stats.views_rendered
     stats.seconds["render"] = time.perf_counter() - t0
 
