@@ -68,7 +68,6 @@ def test_calibration_with_distortion_undistorts_frames_and_events(tmp_path):
     # an independent check of the event remap: a corner event moves as cv2.undistortPoints says
     K = np.array([[250, 0, 172.5], [0, 250, 129.5], [0, 0, 1.0]])
     d = np.array([-0.2, 0.05, 0, 0, 0])
-    raw = schema.read(tmp_path / "u.h5").events  # noqa: F841
     p = cv2.undistortPoints(np.array([[[10.0, 10.0]]]), K, d, P=K).ravel()
     assert p[0] < 10 and p[1] < 10  # barrel distortion pulls corners outward when undistorted
 

@@ -1,5 +1,4 @@
 """Every backend against `reference`, in values and gradients, including the hard cases."""
-import math
 
 import numpy as np
 import pytest

@@ -8,7 +8,6 @@ import torch
 from ev3dgs import schema
 from ev3dgs.cli import main as cli
 from ev3dgs.geometry import intrinsics, look_at
-from ev3dgs.sim import simulate_events
 from ev3dgs.sim.isp import linear_to_srgb, srgb_to_linear
 from ev3dgs.splat.model import GaussianModel
 from ev3dgs.splat.rasterize import rasterization
@@ -50,7 +49,6 @@ def scene_path(tmp_path_factory):
     for v in range(views):
         az = 2 * np.pi * v / views
         eye = 3.0 * np.array([np.cos(az), np.sin(az), 0.5])
-        c0 = look_at(eye, [0, 0, 0])
         start = v * 150_000
         t = start + np.linspace(0, 100_000, S).astype(np.int64)
         drift = rng.normal(0, 0.3, 3)

@@ -21,7 +21,6 @@ Conventions chosen here:
 """
 from __future__ import annotations
 
-import os
 import re
 from dataclasses import dataclass, field
 
@@ -128,17 +127,7 @@ class Aedat2Reader(RecordingReader):
         self.accel_lsb_per_g, self.gyro_lsb_per_dps, self.dv_axes = accel_lsb_per_g, gyro_lsb_per_dps, dv_axes
         self.chunk_records = max(1, int(chunk_records))
         self._info = None
-        try:
-            self._f = open(self.path, "rb")
-        except OSError as e:
-            raise AedatError(f"{self.path}: cannot open: {e}") from e
-        try:
-            self.file_size = os.fstat(self._f.fileno()).st_size
-            self.header = self._read_header()
-        except BaseException:
-            self._f.close()
-            raise
-        self.data_start = self._f.tell()
+        self._open_with_header(self._read_header)
         m = re.search(r"^#\s*AEChip:\s*(\S+)", self.header, re.M)
         self.chip = m.group(1) if m else ""
         self._size = sensor_size or self._guess_size()
@@ -152,10 +141,7 @@ class Aedat2Reader(RecordingReader):
     def _read_header(self) -> str:
         f = self._f
         first = f.readline(64)
-        if not first.startswith(MAGIC):
-            other = re.match(rb"#!AER-DAT(\d\.\d)", first)
-            what = f"AEDAT {other.group(1).decode()}" if other else f"starts with {first[:12]!r}"
-            raise AedatError(f"{self.path}: byte 0: not an AEDAT 2.0 file ({what})")
+        self._check_magic(first, MAGIC, "AEDAT 2.0")
         lines, pos = [first], len(first)
         while True:
             c = f.read(1)

@@ -17,7 +17,6 @@ the valid bit (bit 0) clear are skipped. Origin is top-left (no flip).
 """
 from __future__ import annotations
 
-import os
 import re
 import struct
 
@@ -49,17 +48,7 @@ class Aedat3Reader(RecordingReader):
         self.path = str(path)
         self.warnings: list[str] = []
         self._index = None
-        try:
-            self._f = open(self.path, "rb")
-        except OSError as e:
-            raise AedatError(f"{self.path}: cannot open: {e}") from e
-        try:
-            self.file_size = os.fstat(self._f.fileno()).st_size
-            self.header = self._read_header()
-        except BaseException:
-            self._f.close()
-            raise
-        self.data_start = self._f.tell()
+        self._open_with_header(self._read_header)
         self.sources = {int(m.group(1)): m.group(2).strip()
                         for m in re.finditer(r"^#Source (\d+): ?(.*)$", self.header, re.M)}
         self._size = sensor_size or self._guess_size()
@@ -67,10 +56,7 @@ class Aedat3Reader(RecordingReader):
     def _read_header(self) -> str:
         f = self._f
         first = f.readline(64)
-        if not first.startswith(MAGIC):
-            other = re.match(rb"#!AER-DAT(\d\.\d)", first)
-            what = f"AEDAT {other.group(1).decode()}" if other else f"starts with {first[:12]!r}"
-            raise AedatError(f"{self.path}: byte 0: not an AEDAT 3.1 file ({what})")
+        self._check_magic(first, MAGIC, "AEDAT 3.1")
         lines, pos = [first], len(first)
         while True:
             line = f.readline(1 << 20)

@@ -7,6 +7,8 @@ top, p +1/-1), streamed so that memory stays bounded by a few packets.
 """
 from __future__ import annotations
 
+import os
+import re
 import warnings as _warnings
 from dataclasses import dataclass, field
 
@@ -82,6 +84,27 @@ class RecordingReader:
 
     def close(self) -> None:
         raise NotImplementedError
+
+    def _open_with_header(self, read_header) -> None:
+        """Open self.path, read its text header with read_header() (closing the file if that fails), and
+        note where the binary data starts."""
+        try:
+            self._f = open(self.path, "rb")
+        except OSError as e:
+            raise AedatError(f"{self.path}: cannot open: {e}") from e
+        try:
+            self.file_size = os.fstat(self._f.fileno()).st_size
+            self.header = read_header()
+        except BaseException:
+            self._f.close()
+            raise
+        self.data_start = self._f.tell()
+
+    def _check_magic(self, first_line: bytes, magic: bytes, label: str) -> None:
+        if not first_line.startswith(magic):
+            other = re.match(rb"#!AER-DAT(\d\.\d)", first_line)
+            what = f"AEDAT {other.group(1).decode()}" if other else f"starts with {first_line[:12]!r}"
+            raise AedatError(f"{self.path}: byte 0: not an {label} file ({what})")
 
     def _warn(self, msg: str) -> None:
         """Record a salvaged problem once, and issue it as a Python warning."""
