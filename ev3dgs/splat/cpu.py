@@ -32,6 +32,20 @@ def _box(mx, my, r, xmin, ymin, xmax, ymax):
             max(ymin, int(np.ceil(my - r))), min(ymax, int(np.floor(my + r))))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _tile(tile, tiles_x, width, height, like):
+    """Origin, size and pixel-centre coordinates (in like's dtype, so float32 maths stays float32) of a tile."""
+    x0, y0 = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
+    w, h = min(TILE, width - x0), min(TILE, height - y0)
+    xs = np.empty(w, like.dtype)
+    ys = np.empty(h, like.dtype)
+    for i in range(w):
+        xs[i] = x0 + i
+    for i in range(h):
+        ys[i] = y0 + i
+    return x0, y0, w, h, xs, ys
+
+
 @njit(cache=True, nogil=True)
 def _bin(means2d, radii, order, width, height, tiles_x, tiles_y):
     """Counting sort of (tile, Gaussian) pairs; `order` is the depth order of the Gaussians.
@@ -75,19 +89,10 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
     n_tiles = offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        ty, tx = tile // tiles_x, tile % tiles_x
-        x0, y0 = tx * TILE, ty * TILE
-        w = min(TILE, width - x0)
-        h = min(TILE, height - y0)
+        x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, image)
         P = w * h
         T = np.ones(P, image.dtype)
         C = np.zeros((P, D), image.dtype)
-        xs = np.empty(w, image.dtype)
-        ys = np.empty(h, image.dtype)
-        for i in range(w):
-            xs[i] = x0 + i
-        for i in range(h):
-            ys[i] = y0 + i
         stop = np.zeros(P, np.int64)
         done = np.zeros(P, np.bool_)
         n_done = 0
@@ -142,10 +147,7 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
     zero = half - half
     n_tiles = offsets.shape[0] - 1
     for tile in prange(n_tiles):
-        ty, tx = tile // tiles_x, tile % tiles_x
-        x0, y0 = tx * TILE, ty * TILE
-        w = min(TILE, width - x0)
-        h = min(TILE, height - y0)
+        x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
         P = w * h
         T = np.empty(P, t_final.dtype)
         S = np.empty((P, D), t_final.dtype)
@@ -153,12 +155,6 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
         GA = np.empty(P, t_final.dtype)
         TF = np.empty(P, t_final.dtype)
         stop = np.empty(P, np.int64)
-        xs = np.empty(w, t_final.dtype)
-        ys = np.empty(h, t_final.dtype)
-        for i in range(w):
-            xs[i] = x0 + i
-        for i in range(h):
-            ys[i] = y0 + i
         kmax = offsets[tile]
         for p in range(P):
             px, py = x0 + p % w, y0 + p // w
