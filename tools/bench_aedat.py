@@ -9,13 +9,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from pareto import save_json
 
 READERS = ("ours", "dv-processing", "aedat")
 
@@ -128,9 +128,7 @@ def main(argv=None) -> int:
         r["vs_dv_processing"] = r["events_per_s"] / ref["events_per_s"] if ref else None
         print(f"{r['reader']:14s} {r['events']:>10d} events  {r['events_per_s'] / 1e6:6.1f} M ev/s  "
               f"peak +{r['peak_growth_mb']:.0f} MB  (x{r['vs_dv_processing'] or 0:.2f} vs dv-processing)")
-    out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "file_mb": size_mb, "rows": rows}
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=2))
+    save_json(args.json, {"file_mb": size_mb, "rows": rows})
     plot(rows, args.plot)
     return 0
 

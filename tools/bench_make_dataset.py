@@ -10,14 +10,13 @@ import os
 os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 import tempfile  # noqa: E402
 from dataclasses import asdict  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from ev3dgs.sim.dataset import make_dataset  # noqa: E402
 from ev3dgs.sim.scenes import load_scene, resolve_render  # noqa: E402
+from pareto import save_json  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -41,9 +40,7 @@ def main(argv=None) -> int:
         print(f"{preset:8s} {render.width}x{render.height} {render.samples} spp x {render.subframes} sub-frames: "
               + ", ".join(f"{k} {v:.3f} s" for k, v in per_view.items())
               + f" per view; simulate+ISP+write = {100 * overhead:.1f}% of render")
-    out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "rows": rows}
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=2))
+    save_json(args.json, {"rows": rows})
     plot(rows, args.plot)
     return 0
 

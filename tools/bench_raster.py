@@ -14,15 +14,13 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 
 from ev3dgs.splat.rasterize import cuda_available, rasterization  # noqa: E402
+from pareto import save_json  # noqa: E402
 
 
 def cloud(n: int, width: int, seed: int = 0, device="cpu"):
@@ -89,10 +87,7 @@ def main(argv=None) -> int:
                          "max_abs_diff": diff})
             print(f"{b:9s} {n:>6d} Gaussians {size}x{size}: {ms:9.1f} ms fwd+bwd  "
                   f"(x{ref_ms / ms:5.1f} vs reference)  max|diff| {diff:.2e}")
-    out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, torch/numba threads {args.threads}",
-           "rows": rows}
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=2))
+    save_json(args.json, {"rows": rows}, f", torch/numba threads {args.threads}")
     if args.plot:
         plot(rows, args.plot)
     return 0

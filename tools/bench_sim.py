@@ -12,15 +12,13 @@ for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLA
 os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 from ev3dgs.sim import DVSConfig, simulate_events  # noqa: E402
 from ev3dgs.sim.config import Leak, LowPass, Refractory, ShotNoise, ThresholdMismatch  # noqa: E402
 from ev3dgs.sim.synthetic import moving_texture  # noqa: E402
+from pareto import save_json  # noqa: E402
 
 # v2e's "noisy" preset values (reference/event-simulators.md), mapped onto our effects
 ALL_NOISE = DVSConfig(
@@ -66,11 +64,8 @@ def main(argv=None) -> int:
         clean, noisy = (next(r for r in rows if r["motion_px_per_frame"] == speed and r["mode"] == m)
                         for m in MODES)
         noisy["slowdown_vs_clean"] = noisy["seconds"] / clean["seconds"]
-    out = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, 1 thread",
-           "workload": "17 frames 346x260 moving texture (DN 5-250), dt 1 ms, median of repeats",
-           "rows": rows}
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=2))
+    save_json(args.json, {"workload": "17 frames 346x260 moving texture (DN 5-250), dt 1 ms, median of repeats",
+                          "rows": rows}, ", 1 thread")
     plot(rows, args.plot)
     return 0
 

@@ -10,13 +10,12 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from ev3dgs.train.compare import compare_variants, summary_table  # noqa: E402
 from ev3dgs.train.config import TrainConfig  # noqa: E402
+from pareto import save_json  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -37,14 +36,13 @@ def main(argv=None) -> int:
         base = TrainConfig(scene=scene, iterations=args.iterations, init_points=5000, threads=args.threads)
         results = compare_variants(scene, Path(d) / "runs", base, eval_every=args.eval_every)
     print(summary_table(results))
-    out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "iterations": args.iterations,
+    out = {"iterations": args.iterations,
            "variants": {k: {"test_psnr": v["metrics"]["test"]["psnr"], "test_ssim": v["metrics"]["test"]["ssim"],
                             "train_sharp_psnr": v["metrics"]["train_sharp"]["psnr"],
                             "blurry_input_psnr": v["metrics"]["blurry_input"]["psnr"],
                             "train_seconds": v["train_seconds"], "gaussians": v["gaussians"], "curve": v["curve"]}
                         for k, v in results.items()}}
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=2))
+    save_json(args.json, out)
     plot(out, args.plot)
     return 0
 

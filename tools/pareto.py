@@ -1,4 +1,5 @@
-"""Shared by the studies: save JSON and a Pareto plot (accuracy against seconds, Pareto front marked)."""
+"""Shared by the benchmarks and studies: JSON results with the machine noted, and a Pareto plot (accuracy
+against seconds, Pareto front marked)."""
 from __future__ import annotations
 
 import json
@@ -11,9 +12,10 @@ def machine() -> str:
     return f"{platform.machine()}, {os.cpu_count()} cores"
 
 
-def save_json(path: str, payload: dict) -> None:
+def save_json(path: str, payload: dict, machine_note: str = "") -> None:
+    """payload as JSON at path (folders created), with "machine" (plus an optional note, e.g. threads)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps({"machine": machine(), **payload}, indent=2))
+    Path(path).write_text(json.dumps({"machine": machine() + machine_note, **payload}, indent=2))
 
 
 def pareto_front(points: list[tuple[float, float]], higher_is_better: bool = True) -> list[int]:
