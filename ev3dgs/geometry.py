@@ -49,21 +49,77 @@ def project(K: np.ndarray, c2w: np.ndarray, points: np.ndarray) -> np.ndarray:
     return uv[:, :2] / uv[:, 2:3], pc[:, 2]
 
 
+def _vee_skew(R: np.ndarray) -> np.ndarray:
+    """vee(R - R^T): (..., 3). For a rotation by angle theta about unit axis k this is 2 sin(theta) k."""
+    return np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle in [0, pi] (radians) of rotation matrices (..., 3, 3).
+
+    atan2(|vee(R - R^T)| / 2, (trace - 1) / 2) = atan2(sin, cos): both arguments carry an absolute error of a few
+    ulp of the entries, and atan2 turns that into an absolute angle error of a few ulp over the whole range.
+    (arccos((trace - 1) / 2) loses half the digits near 0 and near pi: an error of 1 ulp in the trace becomes
+    ~1e-8 rad there, and the result then depends on the BLAS and CPU that formed R.)"""
+    R = np.asarray(R, dtype=np.float64)
+    sin = 0.5 * np.linalg.norm(_vee_skew(R), axis=-1)
+    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(sin, cos)
+
+
+def relative_rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    """Angle (radians) of Ra^T Rb for stacks of rotation matrices (..., 3, 3)."""
+    Ra, Rb = np.asarray(Ra, dtype=np.float64), np.asarray(Rb, dtype=np.float64)
+    return rotation_angle(np.swapaxes(Ra, -1, -2) @ Rb)
+
+
 def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation vectors (..., 3) -> matrices (..., 3, 3)."""
+    """Rodrigues: rotation vectors (..., 3) -> matrices (..., 3, 3).
+
+    R = I + sin(t)/t K + (1 - cos t)/t^2 K^2 with K = [v]x, written with sinc so that no branch and no
+    cancellation occurs: sin(t)/t = sinc(t/pi), (1 - cos t)/t^2 = 2 sin^2(t/2)/t^2 = sinc(t/(2 pi))^2 / 2."""
     v = np.asarray(v, dtype=np.float64)
     theta = np.linalg.norm(v, axis=-1)[..., None, None]
     k = np.zeros(v.shape[:-1] + (3, 3))
     k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
     k = k - np.swapaxes(k, -1, -2)
-    small = theta < 1e-8
-    s = np.where(small, 1.0, np.sin(theta) / np.where(small, 1.0, theta))
-    c = np.where(small, 0.5, (1 - np.cos(theta)) / np.where(small, 1.0, theta**2))
+    s = np.sinc(theta / np.pi)
+    c = 0.5 * np.sinc(theta / (2 * np.pi)) ** 2
     return np.eye(3) + s * k + c * (k @ k)
 
 
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3) with angle in [0, pi].
+
+    Away from pi the axis comes from vee(R - R^T) = 2 sin(t) k, so rotvec = vee * t / (2 sin t), with
+    t / sin t = 1 / sinc(t/pi) bounded by pi/2 for t <= pi/2 (no division by a small number near 0). Near pi,
+    sin t -> 0 and vee carries no direction: there the axis comes from the symmetric part,
+    (R + R^T)/2 - cos(t) I = (1 - cos t) k k^T, whose largest-diagonal column is well conditioned, with the
+    sign taken from vee (the two signs describe the same rotation at exactly pi)."""
+    R = np.asarray(R, dtype=np.float64)
+    batch = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    w = _vee_skew(R)
+    theta = rotation_angle(R)
+    out = np.empty((len(R), 3))
+    near_pi = theta > np.pi / 2
+    far = ~near_pi
+    out[far] = w[far] * (0.5 / np.sinc(theta[far] / np.pi))[..., None]
+    if np.any(near_pi):
+        Rn, th, wn = R[near_pi], theta[near_pi], w[near_pi]
+        cos = np.cos(th)
+        B = 0.5 * (Rn + np.swapaxes(Rn, -1, -2)) - cos[:, None, None] * np.eye(3)
+        i = np.argmax(np.diagonal(B, axis1=-2, axis2=-1), axis=-1)
+        col = B[np.arange(len(B)), :, i]
+        k = col / np.linalg.norm(col, axis=-1, keepdims=True)
+        sign = np.where(np.einsum("ni,ni->n", k, wn) < 0, -1.0, 1.0)
+        out[near_pi] = k * (sign * th)[:, None]
+    return out.reshape(batch + (3,))
+
+
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) -> unit quaternion (w, x, y, z), w >= 0."""
+    """Rotation matrix (3, 3) -> unit quaternion (w, x, y, z), w >= 0. Shepperd's method: the largest of
+    |w|, |x|, |y|, |z| is taken from a square root of a sum >= 1, so no step divides by a small number."""
     m = np.asarray(R, dtype=np.float64)
     t = np.trace(m)
     if t > 0:
@@ -72,7 +128,7 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     else:
         i = int(np.argmax(np.diag(m)))
         j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2 * np.sqrt(1 + m[i, i] - m[j, j] - m[k, k])
+        s = 2 * np.sqrt(max(1 + m[i, i] - m[j, j] - m[k, k], 1.0))  # >= 1 in exact arithmetic for a rotation
         q = np.empty(4)
         q[0] = (m[k, j] - m[j, k]) / s
         q[1 + i] = 0.25 * s
@@ -83,8 +139,16 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+def _unit_quat(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    n = float(np.linalg.norm(q))
+    if not np.isfinite(n) or n == 0.0:
+        raise ValueError(f"not a rotation: quaternion {q.tolist()} has norm {n}")
+    return q / n
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    w, x, y, z = _unit_quat(q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
@@ -93,15 +157,18 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> np.ndarray:
-    q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
-    d = float(np.dot(q0, q1))
-    if d < 0:
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + a * (q1 - q0)
-        return q / np.linalg.norm(q)
-    th = np.arccos(np.clip(d, -1, 1))
-    return (np.sin((1 - a) * th) * q0 + np.sin(a * th) * q1) / np.sin(th)
+    """Spherical interpolation of unit quaternions along the shorter arc (a in [0, 1]).
+
+    The half-angle between them comes from atan2(|q0 - q1|, |q0 + q1|) (accurate to a few ulp for any
+    angle, unlike arccos of the dot product), and the weights sin(a th)/sin(th) are written as
+    a sinc(a th/pi)/sinc(th/pi): exact down to th = 0 with no switch to linear interpolation."""
+    q0, q1 = _unit_quat(q0), _unit_quat(q1)
+    if float(np.dot(q0, q1)) < 0:
+        q1 = -q1
+    th = 2.0 * np.arctan2(np.linalg.norm(q0 - q1), np.linalg.norm(q0 + q1))  # angle between them, <= pi/2
+    d = np.sinc(th / np.pi)
+    q = ((1 - a) * np.sinc((1 - a) * th / np.pi) * q0 + a * np.sinc(a * th / np.pi) * q1) / d
+    return q / np.linalg.norm(q)
 
 
 def interpolate_pose(poses: np.ndarray, pose_t: np.ndarray, t: float) -> np.ndarray:
@@ -123,8 +190,16 @@ def interpolate_pose(poses: np.ndarray, pose_t: np.ndarray, t: float) -> np.ndar
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising ||dst - (s R src + t)|| over point sets (N, 3) (Umeyama 1991)."""
+    """Similarity (s, R, t) minimising ||dst - (s R src + t)|| over point sets (N, 3) (Umeyama 1991).
+
+    Degenerate sets still get a minimiser, never NaN: coincident source points (zero variance) give s = 1 and
+    the rotation that the SVD of the (zero or rank-deficient) covariance returns; collinear or coplanar sets
+    leave a rotation about the line (plane normal) free, and any of the minimisers is returned."""
     src, dst = np.asarray(src, float), np.asarray(dst, float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) == 0:
+        raise ValueError(f"umeyama needs two (N, 3) point sets of the same N >= 1, got {src.shape} and {dst.shape}")
+    if not (np.isfinite(src).all() and np.isfinite(dst).all()):
+        raise ValueError("umeyama: point sets must be finite")
     ms, md = src.mean(0), dst.mean(0)
     a, b = src - ms, dst - md
     U, S, Vt = np.linalg.svd(b.T @ a / len(src))
@@ -142,19 +217,18 @@ def pose_errors(est_c2w: np.ndarray, gt_c2w: np.ndarray) -> dict:
     camera centres, then the centre error (ground-truth units, and relative to the trajectory extent).
     Orientations: the one rotation that best maps the estimated orientations onto the true ones (chordal
     mean), then each camera's angle error: a short, nearly planar path constrains the centre-based rotation
-    poorly, which would otherwise show up as a spurious common rotation error."""
+    poorly, which would otherwise show up as a spurious common rotation error. Angles come from
+    `relative_rotation_angle` (atan2 form: a few ulp accurate, also for errors near 0)."""
     est, gt = np.asarray(est_c2w, float), np.asarray(gt_c2w, float)
     s, R, t = umeyama(est[:, :3, 3], gt[:, :3, 3])
     centres = (s * (R @ est[:, :3, 3].T)).T + t
     d_centre = np.linalg.norm(centres - gt[:, :3, 3], axis=1)
     U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", gt[:, :3, :3], est[:, :3, :3]))
     R_rot = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    rot = R_rot @ est[:, :3, :3]
-    cos = (np.einsum("nij,nij->n", rot, gt[:, :3, :3]) - 1) / 2
-    d_rot = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    d_rot = np.degrees(relative_rotation_angle(R_rot @ est[:, :3, :3], gt[:, :3, :3]))
     extent = float(np.linalg.norm(gt[:, :3, 3].max(0) - gt[:, :3, 3].min(0))) or 1.0
-    rot_c = R @ est[:, :3, :3]  # with the centre-based rotation too, for reference
-    d_rot_c = np.degrees(np.arccos(np.clip((np.einsum("nij,nij->n", rot_c, gt[:, :3, :3]) - 1) / 2, -1, 1)))
+    # with the centre-based rotation too, for reference
+    d_rot_c = np.degrees(relative_rotation_angle(R @ est[:, :3, :3], gt[:, :3, :3]))
     return {"rotation_deg_median": float(np.median(d_rot)), "rotation_deg_max": float(d_rot.max()),
             "rotation_deg_median_centre_aligned": float(np.median(d_rot_c)),
             "centre_error_median": float(np.median(d_centre)), "centre_error_max": float(d_centre.max()),

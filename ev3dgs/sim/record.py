@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import intrinsics, look_at
+from ..geometry import intrinsics, look_at, matrix_to_rotvec
 from ..io.aedat4_writer import write_aedat4
 from ..io.types import FrameData, ImuData
 from ..sensor import LUMINANCE_WEIGHTS
@@ -81,13 +81,8 @@ class Trajectory:
 
 
 def rotation_log(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3) (angles < pi)."""
-    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    theta = np.arccos(cos)
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    s = np.sin(theta)
-    scale = np.where(s > 1e-9, theta / (2 * np.where(s > 1e-9, s, 1.0)), 0.5)
-    return w * scale[..., None]
+    """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3) (angles <= pi)."""
+    return matrix_to_rotvec(R)
 
 
 def imu_samples(traj: Trajectory, t_s: np.ndarray, h: float = 5e-4) -> tuple[np.ndarray, np.ndarray]:

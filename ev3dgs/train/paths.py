@@ -81,8 +81,7 @@ def orbit_path(mid_poses, n_frames: int, target=None) -> np.ndarray:
     radius = float(dist.mean())
     if radius < 1e-9:
         raise InputError("the cameras sit on the orbit target; give another target")
-    safe = np.maximum(dist, 1e-12)
-    elev = float(np.mean(np.arcsin(np.clip(off[:, 2] / safe, -1.0, 1.0))))
+    elev = float(np.mean(np.arctan2(off[:, 2], np.linalg.norm(off[:, :2], axis=1))))  # no division, any distance
     lim = np.deg2rad(MAX_ELEVATION_DEG)
     elev = float(np.clip(elev, -lim, lim))
     # start azimuth: the first camera not straight above/below the target
