@@ -394,7 +394,7 @@ def test_decompression_bomb_refused(tmp_path):
     p = tmp_path / "bomb.aedat4"
     p.write_bytes(data)
     with pytest.warns(AedatWarning, match="no FileDataTable"):
-        r = Aedat4Reader(p)
+        r = Aedat4Reader(p, strict=True)          # strict: the corrupt packet raises instead of being skipped
     tracemalloc.start()
     try:
         with pytest.raises(AedatError, match=r"claims 2147483652 decompressed bytes"):

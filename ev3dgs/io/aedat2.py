@@ -15,7 +15,10 @@ Conventions chosen here:
 * IMU: accel raw/accel_lsb_per_g (default 4096 LSB/g, +-8 g, which fits real jAER files; x negated to DV axes as
   aedat4to2 writes it), gyro raw/65.5 deg/s, temperature raw/340 + 35 deg C.
 * Timestamps are read as uint32; a backward jump larger than 2^30 is a wrap (2^32 when the previous value was
-  >= 2^31, i.e. an int32 overflow, else 2^31) and is unwrapped to int64. Smaller backward steps are kept.
+  >= 2^31, i.e. an int32 overflow, else 2^31) only when it is plausible (checks.Wrap32: the old value near the
+  boundary, the new one near 0, and no return to the old range right after); a short run that jumps away
+  and back is dropped as outliers, and DVS events (likewise IMU samples and triggers) that go backwards in
+  time are dropped, all with a warning naming the byte (strict=True: AedatError instead).
 * Triggers: external-input words; kind in AEDAT 4 TriggerType numbers (rising 1, falling 2, pulse 3), -1 when
   the edge is unknown (jAER usually writes the bare EXTERNAL_INPUT_EVENT_ADDR).
 """
@@ -27,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..events import Events
+from .checks import MonotonicFilter, Wrap32
 from .types import AedatError, FrameData, ImuData, RecordingReader, StreamInfo, Triggers
 
 MAGIC = b"#!AER-DAT2.0"
@@ -121,8 +125,10 @@ class Aedat2Reader(RecordingReader):
     format = "aedat2"
 
     def __init__(self, path, *, sensor_size: tuple[int, int] | None = None, accel_lsb_per_g: float = 4096.0,
-                 gyro_lsb_per_dps: float = 65.5, dv_axes: bool = True, chunk_records: int = CHUNK_RECORDS):
+                 gyro_lsb_per_dps: float = 65.5, dv_axes: bool = True, chunk_records: int = CHUNK_RECORDS,
+                 strict: bool = False):
         self.path = str(path)
+        self.strict = strict
         self.warnings: list[str] = []
         self.accel_lsb_per_g, self.gyro_lsb_per_dps, self.dv_axes = accel_lsb_per_g, gyro_lsb_per_dps, dv_axes
         self.chunk_records = max(1, int(chunk_records))
@@ -262,27 +268,37 @@ class Aedat2Reader(RecordingReader):
     def _scan(self, frames: bool):
         """Decode the file chunk by chunk; state (timestamp wrap, IMU group, open frame) spans chunks."""
         w, h = self._size
-        prev, offset = None, 0
+        wrap, mono = Wrap32(), {k: MonotonicFilter() for k in ("events", "imu", "triggers")}
+        n_outlier = n_back = 0
+        first_bad = {}
         imu_carry = np.zeros((0, 2), np.int64)       # (address, t) of an incomplete IMU sample
         fb = _FrameBuilder(w, h)
         n_bad = n_imu_drop = 0
         self._f.seek(self.data_start)
-        left = self.n_records
+        left, rec0 = self.n_records, 0
         while left > 0:
             k = min(left, self.chunk_records)
-            buf = self._f.read(8 * k)
-            if len(buf) < 8 * k:
+            npk = min(left - k, Wrap32.MAX_RUN)
+            buf = self._f.read(8 * (k + npk))
+            if len(buf) < 8 * (k + npk):
                 raise AedatError(f"{self.path}: byte {self._f.tell()}: file shrank while reading")
+            self._f.seek(-8 * npk, 1)
             left -= k
             rec = np.frombuffer(buf, ">u4").reshape(-1, 2)
-            addr = rec[:, 0].astype(np.uint32)
-            u = rec[:, 1].astype(np.int64)
-            prevs = np.concatenate([[u[0] if prev is None else prev], u[:-1]])
-            wrap = (u - prevs) < -(1 << 30)
-            step = np.where(wrap, np.where(prevs >= 1 << 31, 1 << 32, 1 << 31), 0)
-            t = u + offset + np.cumsum(step)
-            offset += int(step.sum())
-            prev = int(u[-1])
+            t, ok, notes = wrap.feed(rec[:k, 1].astype(np.int64), rec[k:, 1].astype(np.int64))
+            for kind, j, detail in notes:
+                at = self.data_start + 8 * (rec0 + j)
+                what = (f"{detail} record(s) whose timestamp jumps by more than 2^30 us and back (outliers)"
+                        if kind == "outlier" else f"timestamp jumping back by {-detail} us (not a plausible wrap)")
+                if self.strict:
+                    raise AedatError(f"{self.path}: byte {at}: {what}")
+                first_bad.setdefault(kind, at)
+                n_outlier += detail if kind == "outlier" else 0
+                n_back += kind == "backward"
+            idx = rec0 + np.flatnonzero(ok)
+            rec0 += k
+            addr = rec[:k, 0][ok].astype(np.uint32)
+            t = t[ok]
 
             aps = (addr >> 31).astype(bool)
             typ = (addr >> 10) & 3
@@ -291,11 +307,18 @@ class Aedat2Reader(RecordingReader):
             dvs = ~aps & ((typ & 1) == 0)
             special = ~aps & ((typ & 1) == 1)
             inside = (x < w) & (y < h)
-            n_bad += int(np.count_nonzero((dvs | (aps & (typ < 2))) & ~inside))
+            outside = (dvs | (aps & (typ < 2))) & ~inside
+            if outside.any():
+                if self.strict:
+                    raise AedatError(f"{self.path}: byte {self.data_start + 8 * int(idx[np.argmax(outside)])}: "
+                                     f"x/y outside the {w}x{h} sensor")
+                n_bad += int(np.count_nonzero(outside))
             m = dvs & inside
+            m[m] = self._ordered(mono["events"], t[m], idx[m], "DVS event")
             ev = Events(t[m], x[m], h - 1 - y[m], np.where(addr[m] & (1 << 11), 1, -1))
             ch = _Chunk(ev)
 
+            special[special] = self._ordered(mono["triggers"], t[special], idx[special], "trigger")
             if special.any():
                 code = addr[special] & 0x3FF
                 ch.trig_t = t[special]
@@ -307,6 +330,12 @@ class Aedat2Reader(RecordingReader):
             if imu.any() or len(imu_carry):
                 ch.imu_t, ch.imu_raw, imu_carry, dropped = self._imu_groups(imu_carry, addr[imu], t[imu])
                 n_imu_drop += dropped
+                okt = mono["imu"](ch.imu_t)
+                if okt is not None:
+                    if self.strict and not okt.all():
+                        raise AedatError(f"{self.path}: IMU sample at t={int(ch.imu_t[np.argmin(okt)])} goes back in "
+                                         "time")
+                    ch.imu_t, ch.imu_raw = ch.imu_t[okt], ch.imu_raw[okt]
 
             if frames:
                 a = aps & (typ < 2) & inside
@@ -330,6 +359,26 @@ class Aedat2Reader(RecordingReader):
             self._warn(f"{fb.incomplete} APS frames with missing reset or signal reads (missing pixels are 0)")
         if fb.orphans:
             self._warn(f"{fb.orphans} APS signal reads without reset reads ignored")
+        if n_outlier:
+            self._warn(f"byte {first_bad['outlier']}: {n_outlier} records whose timestamps jump by more than "
+                       "2^30 us and back (not a wrap) dropped as outliers")
+        if n_back:
+            self._warn(f"byte {first_bad['backward']}: {n_back} timestamp jumps back that are not plausible "
+                       "wraps (left unwrapped)")
+        for kind, f in mono.items():
+            if f.dropped:
+                self._warn(f"byte {self.data_start + 8 * f.first_bad}: {f.dropped} {kind} going back in time "
+                           "dropped" if f.first_bad is not None else f"{f.dropped} {kind} going back in time dropped")
+
+    def _ordered(self, filt: MonotonicFilter, t: np.ndarray, idx: np.ndarray, what: str) -> np.ndarray:
+        """Keep-mask of the samples of one stream that do not go back in time (strict: raise at the first)."""
+        keep = filt(t, idx)
+        if keep is None:
+            return np.ones(len(t), bool)
+        if self.strict and not keep.all():
+            raise AedatError(f"{self.path}: byte {self.data_start + 8 * int(idx[np.argmin(keep)])}: {what} "
+                             "going back in time")
+        return keep
 
     @staticmethod
     def _imu_groups(carry, addr, t):

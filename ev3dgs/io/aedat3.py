@@ -14,6 +14,11 @@ the valid bit (bit 0) clear are skipped. Origin is top-left (no flip).
 * Special (8 B): data bit 0 valid, bits 1-7 type (libcaer caer_special_event_types), bits 8-31 data; those that
   are triggers (timestamp reset, external inputs/generators, APS frame/exposure markers) come out as Triggers with
   AEDAT 4 TriggerType numbers; the rest (timestamp wrap, row-only, ...) are counted and excluded.
+
+Checks (ev3dgs.io.checks): a packet whose eventTSOverflow goes back, or jumps by more than one and back, is
+dropped; events whose 32-bit timestamp has bit 31 set, or that go back in time within their stream, or lie
+outside the sensor are dropped; frames outside the sensor or with inverted times and IMU samples with
+impossible values are dropped; all with a warning naming the byte (strict=True: AedatError instead).
 """
 from __future__ import annotations
 
@@ -23,6 +28,7 @@ import struct
 import numpy as np
 
 from ..events import Events
+from .checks import MonotonicFilter, imu_plausible
 from .types import AedatError, FrameData, ImuData, RecordingReader, StreamInfo, Triggers
 
 MAGIC = b"#!AER-DAT3.1"
@@ -44,8 +50,9 @@ SENSORS = [("346", (346, 260)), ("240", (240, 180)), ("640", (640, 480)), ("128"
 class Aedat3Reader(RecordingReader):
     format = "aedat3.1"
 
-    def __init__(self, path, *, sensor_size: tuple[int, int] | None = None):
+    def __init__(self, path, *, sensor_size: tuple[int, int] | None = None, strict: bool = False):
         self.path = str(path)
+        self.strict = strict
         self.warnings: list[str] = []
         self._index = None
         self._open_with_header(self._read_header)
@@ -121,8 +128,34 @@ class Aedat3Reader(RecordingReader):
                 break
             out.append((pos, typ, src, size, ovf, cap, num))
             pos += HDR.size + payload
-        self._index = out
-        return out
+        self._index = self._check_overflow(out)
+        return self._index
+
+    def _problem(self, msg: str) -> None:
+        if self.strict:
+            raise AedatError(f"{self.path}: {msg}")
+        self._warn(msg)
+
+    def _check_overflow(self, index: list) -> list:
+        """Drop packets whose eventTSOverflow goes back, or jumps by more than one and back (a flipped bit)."""
+        keep, top = [], None
+        for k, pk in enumerate(index):
+            ovf, nxt = pk[4], index[k + 1][4] if k + 1 < len(index) else None
+            if top is not None and (ovf < top or (ovf > top + 1 and nxt is not None and nxt < ovf)):
+                self._problem(f"byte {pk[0]}: packet {k} (eventType {pk[1]}) has eventTSOverflow {ovf} after {top}: "
+                              "packet dropped")
+                continue
+            top = ovf if top is None else max(top, ovf)
+            keep.append(pk)
+        return keep
+
+    def _ordered(self, filt: MonotonicFilter, t: np.ndarray, pos: int, what: str) -> np.ndarray:
+        keep = filt(t)
+        if keep is None:
+            return np.ones(len(t), bool)
+        if not keep.all():
+            self._problem(f"byte {pos}: {len(t) - int(keep.sum())} {what} going back in time dropped")
+        return keep
 
     def streams(self) -> list[StreamInfo]:
         found: dict[tuple[str, int], int] = {}
@@ -175,6 +208,7 @@ class Aedat3Reader(RecordingReader):
         src = self._select(stream, "events")
         w, h = self._size
         bad = 0
+        mono = MonotonicFilter()
         for (pos, _, _, _, ovf, _, _), buf in self._payloads((POLARITY,), src):
             d = np.frombuffer(buf, "<u4").reshape(-1, 2)
             data = d[:, 0]
@@ -183,8 +217,15 @@ class Aedat3Reader(RecordingReader):
             y = ((data >> 2) & 0x7FFF).astype(np.int64)
             m = (data & 1).astype(bool)
             inside = (x < w) & (y < h)
+            if self.strict and (m & ~inside).any():
+                raise AedatError(f"{self.path}: byte {pos}: polarity event outside the {w}x{h} sensor")
             bad += int(np.count_nonzero(m & ~inside))
             m &= inside
+            neg = m & (d[:, 1] >= 1 << 31)
+            if neg.any():
+                self._problem(f"byte {pos}: {int(neg.sum())} polarity events with a negative 32-bit timestamp dropped")
+                m &= ~neg
+            m[m] = self._ordered(mono, t[m], pos, "polarity events")
             if start_us is not None:
                 m &= t >= start_us
             if end_us is not None:
@@ -196,11 +237,28 @@ class Aedat3Reader(RecordingReader):
 
     def frames(self, stream=None):
         src = self._select(stream, "frames")
+        w, h = self._size
+        last = None
         for (pos, _, _, size, ovf, _, _), buf in self._payloads((FRAME,), src):
             for j in range(len(buf) // size):
-                fr = self._frame(buf[j * size:(j + 1) * size], ovf, pos, self.sources.get(src, ""))
-                if fr is not None:
-                    yield fr
+                try:
+                    fr = self._frame(buf[j * size:(j + 1) * size], ovf, pos, self.sources.get(src, ""))
+                except AedatError as e:
+                    if self.strict:
+                        raise
+                    self._warn(f"{str(e).split(': ', 1)[-1]}: frame skipped")
+                    continue
+                if fr is None:
+                    continue
+                fh, fw = fr.image.shape[:2]
+                why = ("outside the sensor" if fr.position[0] + fw > w or fr.position[1] + fh > h else
+                       "with inverted times" if fr.exposure_end < fr.exposure_start or fr.frame_end < fr.frame_start
+                       else "going back in time" if last is not None and fr.timestamp < last else None)
+                if why:
+                    self._problem(f"byte {pos}: frame {j} of the packet ({fw}x{fh} at {fr.position}) {why}: dropped")
+                    continue
+                last = fr.timestamp
+                yield fr
 
     def _frame(self, ev: bytes, ovf: int, pos: int, source: str):
         info, sof, eof, soe, eoe, lx, ly, px, py = struct.unpack_from("<9i", ev)
@@ -221,12 +279,19 @@ class Aedat3Reader(RecordingReader):
     def imu(self, stream=None) -> ImuData:
         src = self._select(stream, "imu")
         ts, vals = [], []
+        mono = MonotonicFilter()
         for (pos, typ, _, size, ovf, _, _), buf in self._payloads((IMU6, IMU9), src):
             n = len(buf) // size
             rec = np.frombuffer(buf, np.uint8).reshape(n, size)[:, :36]
             head = rec[:, :8].copy().view("<u4")
             v = rec[:, 8:36].copy().view("<f4")
             m = (head[:, 0] & 1).astype(bool)
+            bad = m & ~imu_plausible(v[:, 0:3], v[:, 3:6], v[:, 6])
+            if bad.any():
+                self._problem(f"byte {pos}: {int(bad.sum())} IMU samples with non-finite or impossible values dropped")
+                m &= ~bad
+            m[m] = self._ordered(mono, (np.int64(ovf) << 31) | (head[m, 1] & 0x7FFFFFFF).astype(np.int64), pos,
+                                 "IMU samples")
             ts.append((np.int64(ovf) << 31) | (head[m, 1] & 0x7FFFFFFF).astype(np.int64))
             vals.append(v[m])
         if not ts:
@@ -237,6 +302,7 @@ class Aedat3Reader(RecordingReader):
     def triggers(self, stream=None) -> Triggers:
         src = self._select(stream, "triggers")
         ts, ks = [], []
+        mono = MonotonicFilter()
         for (pos, _, _, _, ovf, _, _), buf in self._payloads((SPECIAL,), src):
             d = np.frombuffer(buf, "<u4").reshape(-1, 2)
             typ = (d[:, 0] >> 1) & 0x7F
@@ -244,6 +310,8 @@ class Aedat3Reader(RecordingReader):
             for c, k in TRIGGER_KIND.items():
                 kind[typ == c] = k
             m = (d[:, 0] & 1).astype(bool) & (kind >= 0)
+            m[m] = self._ordered(mono, (np.int64(ovf) << 31) | (d[m, 1] & 0x7FFFFFFF).astype(np.int64), pos,
+                                 "triggers")
             ts.append((np.int64(ovf) << 31) | (d[m, 1] & 0x7FFFFFFF).astype(np.int64))
             ks.append(kind[m])
         if not ts:

@@ -22,8 +22,9 @@ import numpy as np
 import zstandard
 
 from ..events import Events
+from .checks import StreamChecks
 from .flatbuf import FlatbufError, gather, root, table_vector
-from .types import AedatError, FrameData, ImuData, RecordingReader, StreamInfo, Triggers
+from .types import AedatError, AedatWarning, FrameData, ImuData, RecordingReader, StreamInfo, Triggers
 
 MAGIC = b"#!AER-DAT4.0\r\n"
 COMPRESSIONS = {0: "none", 1: "lz4", 2: "lz4-high", 3: "zstd", 4: "zstd-high"}
@@ -41,13 +42,6 @@ _IMU_FIELDS = {"t": (0, "<i8"), "temp": (1, "<f4"), "ax": (2, "<f4"), "ay": (3, 
 _TRIG_FIELDS = {"t": (0, "<i8"), "kind": (1, "i1")}
 _FTAB_FIELDS = {"offset": (0, "<i8"), "stream": (1, "<i4", 0), "size": (1, "<u4", 4), "elements": (2, "<i8"),
                 "t_start": (3, "<i8"), "t_end": (4, "<i8")}
-
-
-_POLARITY = np.where(np.arange(256) != 0, 1, -1).astype(np.int8)  # stored 0/1 (any non-zero = ON) -> -1/+1
-
-
-class AedatWarning(UserWarning):
-    """A recoverable problem in a recording (truncated tail, damaged FileDataTable, skipped packet)."""
 
 
 def _inflate(data: memoryview, comp: int, at: int) -> bytearray:
@@ -109,14 +103,17 @@ def _decompress(data: memoryview, comp: int, at: int):
 class Aedat4Reader(RecordingReader):
     """Reader of one AEDAT 4.0 file. `stream` arguments take a stream id, its name (originalOutputName),
     its source (camera name), "source/name", or a StreamInfo; None picks the first stream of that kind.
-    With skip_corrupt=True a packet whose contents are corrupt is skipped with a warning instead of raising."""
+    Every decoded packet is checked against what the file states (ev3dgs.io.checks): a corrupt packet is
+    skipped, and values the file contradicts are dropped, with a warning naming the stream, packet and byte;
+    with strict=True they raise AedatError instead. skip_corrupt=True/False is the older spelling of
+    strict=False/True."""
 
     format = "aedat4"
 
-    def __init__(self, path, *, skip_corrupt: bool = False) -> None:
+    def __init__(self, path, *, strict: bool = False, skip_corrupt: bool | None = None) -> None:
         self.path = os.fspath(path)
         self.warnings: list[str] = []
-        self.skip_corrupt = skip_corrupt
+        self.strict = strict if skip_corrupt is None else not skip_corrupt
         try:
             self._f = open(self.path, "rb")
         except OSError as e:
@@ -299,29 +296,36 @@ class Aedat4Reader(RecordingReader):
         return tab, body
 
     def _packets(self, kind: str, stream, start_us=None, end_us=None):
-        """Yield the decoded packets of the chosen stream, skipping (with a warning) corrupt packets
-        when skip_corrupt is set; packets outside [start, end) are skipped using the FileDataTable."""
+        """Yield the decoded and checked packets of the chosen stream, skipping corrupt packets with a warning
+        (strict: raising); packets outside [start, end) are skipped using the FileDataTable."""
         s = self._select(stream, kind)
         decode = getattr(self, "_decode_" + kind)
+        chk = StreamChecks(self, s)
+        check = {"events": lambda i, a: chk.events(i, *a), "frames": lambda i, a: a and chk.frame(i, a),
+                 "imu": lambda i, a: chk.samples(i, a, "imu"), "triggers": lambda i, a: chk.samples(i, a, "triggers")}
         todo = [int(i) for i in np.flatnonzero(self._sid == s.id)
                 if not (self._t0 is not None and ((start_us is not None and self._t1[i] < start_us)
                                                   or (end_us is not None and self._t0[i] >= end_us)))]
         for i in todo:
             try:
-                yield decode(i, s)
+                out = check[kind](i, decode(i, s))
             except (AedatError, FlatbufError) as e:
                 msg = str(e) if isinstance(e, AedatError) else f"byte {int(self._off[i])}: corrupt {kind} packet ({e})"
-                if not self.skip_corrupt:
+                if self.strict:
                     raise AedatError(msg) from None
-                self._warn(f"{msg}: packet skipped")
+                self._warn(f"{msg} [{chk.where(i)}]: packet skipped")
+                continue
+            if out is not None:
+                yield out
 
-    def _decode_events(self, i: int, s: StreamInfo) -> Events:
+    def _decode_events(self, i: int, s: StreamInfo):
+        """-> (t, x, y, stored polarity byte), checked into Events by StreamChecks.events."""
         tab, body = self._decode(i, "events")
         start, n = tab.vector(0, EVENT_DTYPE.itemsize)
         a = np.frombuffer(body, EVENT_DTYPE, count=n, offset=start)
         # t, x, y stay strided views into the decompressed packet (no copies: the packet buffer lives as long
-        # as the chunk); coordinates are non-negative, so int16 -> uint16 is a reinterpretation
-        return Events(a["t"], a["x"].view(np.uint16), a["y"].view(np.uint16), _POLARITY[a["p"]])
+        # as the chunk); a negative int16 coordinate becomes >= 32768 as uint16, which the checks reject
+        return a["t"], a["x"].view(np.uint16), a["y"].view(np.uint16), a["p"]
 
     def _decode_frames(self, i: int, s: StreamInfo) -> FrameData | None:
         tab, body = self._decode(i, "frames")
@@ -458,7 +462,11 @@ class Aedat4Reader(RecordingReader):
 
     def info(self) -> dict:
         """Summary for `ev3dgs-ingest info`: streams with packet/element counts and time ranges, compression,
-        file size, FileDataTable state and warnings. Without a FileDataTable every packet is decoded once."""
+        file size, FileDataTable state and warnings. Every packet is decoded and checked once (strict: the first
+        problem raises); without a FileDataTable the counts and time ranges come from that pass."""
+        for s in self.streams():
+            for _ in (self._packets(s.kind, s) if s.kind in IDENTS else ()):
+                pass
         nel, t0, t1 = self._nel, self._t0, self._t1
         if nel is None:
             nel, t0, t1 = (np.full(len(self._off), v, np.int64) for v in (0, -1, -1))

@@ -52,6 +52,7 @@ class DavisOptions:
     color_filter: str = "none"        # the DVS colour filter of a colour DAVIS346: pass it, it is not in the file
     min_registered: float = 0.5
     aps_linear: bool = True           # DAVIS APS frames are linear in light: sRGB-encode them for the scene
+    strict: bool = False              # reader: raise on a corrupt packet / contradicted value instead of dropping it
 
     def __post_init__(self):
         if self.every < 1:
@@ -66,6 +67,8 @@ class DavisOptions:
             raise InputError(f"--color-filter must be none or one of {', '.join(BAYER)}")
         if not (self.pos_threshold > 0 and self.neg_threshold > 0):
             raise InputError("thresholds must be > 0")
+        if not (np.isfinite(self.event_margin_ms) and self.event_margin_ms >= 0):  # < 0 keeps no event at all
+            raise InputError(f"--event-margin-ms must be a finite number >= 0, got {self.event_margin_ms}")
 
 
 @dataclass
@@ -178,7 +181,7 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
                  quiet: bool = True) -> IngestStats:
     out = Path(out)
     stats = IngestStats(out)
-    with open_recording(path) as reader, warnings.catch_warnings():
+    with open_recording(path, strict=opts.strict) as reader, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the reader keeps its own list; we report it once
         W, H = reader.sensor_size()
         views, stats.frames_in_file = select_frames(reader.frames(opts.frames_stream), opts, W, H)

@@ -20,16 +20,18 @@ def detect_format(path: str | Path) -> str:
     raise AedatError(f"{p}: byte 0: not an AEDAT 2.0, 3.1 or 4.0 file (starts with {head[:12]!r})")
 
 
-def open_recording(path: str | Path) -> RecordingReader:
+def open_recording(path: str | Path, *, strict: bool = False) -> RecordingReader:
+    """The reader for the file's format. strict=False: corrupt packets and values the file contradicts are
+    dropped with a warning; strict=True: they raise AedatError naming the byte."""
     fmt = detect_format(path)
     if fmt == "aedat4":
         from .aedat4 import Aedat4Reader
 
-        return Aedat4Reader(path)
+        return Aedat4Reader(path, strict=strict)
     if fmt == "aedat3.1":
         from .aedat3 import Aedat3Reader
 
-        return Aedat3Reader(path)
+        return Aedat3Reader(path, strict=strict)
     from .aedat2 import Aedat2Reader
 
-    return Aedat2Reader(path)
+    return Aedat2Reader(path, strict=strict)

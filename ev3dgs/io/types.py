@@ -21,6 +21,11 @@ class AedatError(Ev3dgsError):
     """A corrupt or unsupported recording; the message names the byte offset where reading failed."""
 
 
+class AedatWarning(UserWarning):
+    """A recoverable problem in a recording (truncated tail, damaged FileDataTable, skipped packet, dropped
+    values that the file contradicts)."""
+
+
 @dataclass
 class StreamInfo:
     id: int
@@ -110,7 +115,7 @@ class RecordingReader:
         """Record a salvaged problem once, and issue it as a Python warning."""
         if msg not in self.warnings:
             self.warnings.append(msg)
-            _warnings.warn(f"{self.path}: {msg}", stacklevel=3)
+            _warnings.warn(f"{self.path}: {msg}", AedatWarning, stacklevel=3)
 
     def streams(self) -> list[StreamInfo]:
         raise NotImplementedError
