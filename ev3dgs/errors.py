@@ -15,3 +15,7 @@ class SchemaError(Ev3dgsError):
 
 class InputError(Ev3dgsError):
     """Input arrays have the wrong shape, dtype or values (NaN, negative, unsorted...)."""
+
+
+class SchemaWarning(UserWarning):
+    """A scene file follows the schema and can train, but something in it is odd; the message names the path."""

@@ -204,13 +204,15 @@ def _cast(a: Any, dtype: Any, where: str) -> np.ndarray:
     return a.astype(dt)
 
 
-def _put_large(g: h5py.Group, name: str, src: Any, dtype: Any, chunk_rows: int) -> None:
+def _put_large(g: h5py.Group, name: str, src: Any, dtype: Any, chunk_rows: int, check=None) -> None:
     shape = tuple(int(s) for s in src.shape)
     row_bytes = max(1, int(np.prod(shape[1:], dtype=np.int64)) * np.dtype(dtype).itemsize)
     ds = g.create_dataset(name, shape=shape, dtype=dtype, chunks=(chunk_rows,) + shape[1:],
                           maxshape=(None,) + shape[1:], **_GZIP)
     for start, block in _blocks(src, max(1, _COPY_BYTES // row_bytes)):
         ds[start:start + len(block)] = _cast(block, dtype, ds.name)
+        if check is not None:
+            check()  # stop at the first failed write (see write)
 
 
 def _put(g: h5py.Group, name: str, a: Any, dtype: Any) -> None:
@@ -251,22 +253,36 @@ def write(scene: Scene, path: str | os.PathLike) -> Path:
     except (TypeError, ValueError) as e:
         raise SchemaError(f"/: config is not JSON serialisable ({e})") from None
     created = scene.created or datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+    from .outputs import H5Sink, OutputError, os_error_message, remove_stale_temps, temp_name
+
+    tmp, sink = temp_name(path), None
     try:
-        with h5py.File(tmp, "w") as f:
-            _write_contents(f, scene, config, created)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(path.parent, path.name)  # left by killed writers of the same file
+        # HDF5 writes through H5Sink, never straight to disk: a failed write (ENOSPC) inside HDF5 makes the
+        # next close of the file or of one of its datasets segfault (see ev3dgs.outputs.H5Sink)
+        sink = H5Sink(tmp, target=path)
+        with h5py.File(sink, "w") as f:
+            _write_contents(f, scene, config, created, sink.check)
+        sink.fsync()
+        sink.check()
+        sink.close()
         validate(tmp, require_complete=False)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
+    except BaseException as e:
+        if sink is not None:
+            sink.close()
+        try:
+            os.unlink(tmp)
+        except OSError:  # missing, or a read-only folder: never hide the real error
+            pass
+        if isinstance(e, OSError):
+            raise OutputError(f"cannot write {os_error_message(e, path)}", e.errno) from None
         raise
     return path
 
 
-def _write_contents(f: h5py.File, s: Scene, config: str, created: str) -> None:
+def _write_contents(f: h5py.File, s: Scene, config: str, created: str, check=None) -> None:
     f.attrs.update(format=FORMAT, version=VERSION, source=str(s.source), name=str(s.name),
                    created=created, config=config)
     if s.bounds is not None:
@@ -281,7 +297,7 @@ def _write_contents(f: h5py.File, s: Scene, config: str, created: str) -> None:
         _put(cam, "distortion", s.camera.distortion, np.float64)
     ev = f.create_group("events")
     for name, dt in _EVENT_DTYPES:
-        _put_large(ev, name, getattr(s.events, name), dt, max(1, min(EVENT_CHUNK, len(s.events))))
+        _put_large(ev, name, getattr(s.events, name), dt, max(1, min(EVENT_CHUNK, len(s.events))), check)
     sn = s.sensor
     ev.attrs.update(pos_threshold=float(sn.pos_threshold), neg_threshold=float(sn.neg_threshold),
                     color_filter=str(sn.color_filter), refractory_us=sn.refractory_us)
@@ -293,7 +309,7 @@ def _write_contents(f: h5py.File, s: Scene, config: str, created: str) -> None:
         for name, dt, _, large, _ in items if part is not None else ():
             if getattr(part, name) is not None:
                 if large:
-                    _put_large(g, name, getattr(part, name), dt, 1)
+                    _put_large(g, name, getattr(part, name), dt, 1, check)
                 else:
                     _put(g, name, getattr(part, name), dt)
 
@@ -314,6 +330,18 @@ def _open(path: str | os.PathLike) -> Iterator[h5py.File]:
             yield f
     except (OSError, RuntimeError) as e:
         raise SchemaError(f"{p}: cannot read HDF5 data; the file may be truncated or corrupt ({e})") from None
+    except (KeyError, ValueError, TypeError) as e:
+        if not _raised_in_h5py(e):  # ours: a bug, keep its traceback
+            raise
+        # a damaged object header or attribute surfaces from h5py as KeyError/ValueError/TypeError
+        raise SchemaError(f"{p}: cannot read HDF5 object; the file may be corrupt ({e})") from None
+
+
+def _raised_in_h5py(e: BaseException) -> bool:
+    tb, last = e.__traceback__, None
+    while tb is not None:
+        last, tb = tb.tb_frame.f_code.co_filename, tb.tb_next
+    return last is not None and "h5py" in Path(last).parts
 
 
 def _str(v: Any) -> str | None:
@@ -326,183 +354,16 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
 
 
-def _real(obj: h5py.HLObject, key: str, where: str, low: float, strict: bool) -> float:
-    if key not in obj.attrs:
-        raise SchemaError(f"{where}: missing attr {key}")
-    v = obj.attrs[key]
-    if not (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))) \
-            or not np.isfinite(v) or (v <= low if strict else v < low):
-        raise SchemaError(f"{where}: attr {key} must be a finite number {'>' if strict else '>='} {low}, found {v!r}")
-    return float(v)
-
-
-def _shape(path: str, found: tuple, expected: tuple, dims: dict) -> None:
-    new: dict = {}
-    ok = len(found) == len(expected)
-    for got, want in zip(found, expected) if ok else ():
-        if isinstance(want, str):
-            bound = dims.get(want, new.get(want))
-            if bound is None:
-                new[want] = got
-            ok = ok and (bound is None or bound == got)
-        else:
-            ok = ok and got == want
-    if not ok:
-        shown = [f"{w}={dims[w]}" if isinstance(w, str) and w in dims else str(w) for w in expected]
-        text = "(" + ", ".join(shown) + ("," if len(shown) == 1 else "") + ")"
-        raise SchemaError(f"{path}: expected shape {text}, found {tuple(found)}")
-    dims.update(new)
-
-
-def _ds(f: h5py.File, path: str, dtype: Any, shape: tuple, dims: dict) -> h5py.Dataset:
-    if path not in f:
-        raise SchemaError(f"{path}: missing")
-    ds = f[path]
-    if not isinstance(ds, h5py.Dataset):
-        raise SchemaError(f"{path}: expected a dataset, found a group")
-    want = np.dtype(dtype)
-    if ds.dtype.kind != want.kind or ds.dtype.itemsize != want.itemsize:
-        raise SchemaError(f"{path}: expected dtype {want}, found {ds.dtype}")
-    _shape(path, ds.shape, shape, dims)
-    return ds
-
-
-def _finite(a: np.ndarray, path: str) -> None:
-    bad = np.argwhere(~np.isfinite(a))
-    if len(bad):
-        raise SchemaError(f"{path}: non-finite value at index {list(map(int, bad[0]))}")
-
-
-def _pair(f: h5py.File, a: str, b: str) -> bool:
-    """True if both exist; SchemaError naming the missing one if only one does."""
-    ha, hb = a in f, b in f
-    if ha != hb:
-        raise SchemaError(f"{b if ha else a}: missing ({a if ha else b} is present; they come together)")
-    return ha
-
-
-def validate(source: str | os.PathLike | h5py.File, require_complete: bool = True) -> None:
+def validate(source: str | os.PathLike | h5py.File, require_complete: bool = True, warn: bool = True) -> list[str]:
     """Raise SchemaError (message starting with the path inside the file) if the file breaks the schema.
 
     require_complete=False accepts an events-only file (camera width/height, events, sensor attrs).
+    Returns the warnings (odd but trainable), also issued as SchemaWarning unless warn=False.
+    The checks live in schema_validate.py.
     """
-    if isinstance(source, h5py.Group):
-        try:
-            return _validate(source.file, require_complete)
-        except (OSError, RuntimeError) as e:
-            raise SchemaError(f"{source.file.filename}: cannot read HDF5 data ({e})") from None
-    with _open(source) as f:
-        _validate(f, require_complete)
+    from . import schema_validate  # here, not at the top: schema_validate imports the layout from this module
 
-
-def _validate(f: h5py.File, complete: bool) -> None:
-    fmt = _str(f.attrs.get("format"))
-    if fmt != FORMAT:
-        raise SchemaError(f"/: attr format is {fmt!r}, expected {FORMAT!r} (not an ev3dgs scene file)"
-                          if fmt is not None else "/: missing attr format (not an ev3dgs scene file)")
-    ver = f.attrs.get("version")
-    if not _is_int(ver):
-        raise SchemaError(f"/: attr version must be an integer, found {ver!r}")
-    if ver > VERSION:
-        raise SchemaError(f"/: schema version {int(ver)} is newer than this reader ({VERSION})")
-    if ver < 1:
-        raise SchemaError(f"/: schema version {int(ver)} is not valid")
-    for key in ("source", "name", "created", "config"):
-        if key in f.attrs and _str(f.attrs[key]) is None:
-            raise SchemaError(f"/: attr {key} must be text, found {f.attrs[key]!r}")
-    if "config" in f.attrs:
-        try:
-            config = json.loads(_str(f.attrs["config"]))
-        except ValueError as e:
-            raise SchemaError(f"/: attr config is not valid JSON ({e})") from None
-        if not isinstance(config, dict):
-            raise SchemaError(f"/: attr config must be a JSON object, found {type(config).__name__}")
-    if "bounds" in f.attrs:
-        b = np.asarray(f.attrs["bounds"])
-        if b.shape != (2, 3) or b.dtype.kind not in "iuf" or not np.all(np.isfinite(b)) or np.any(b[0] > b[1]):
-            raise SchemaError(f"/: attr bounds must be finite (2, 3) [min, max] with min <= max, found {b!r}")
-
-    if "camera" not in f:
-        raise SchemaError("/camera: missing")
-    cam = f["camera"]
-    for key in ("width", "height"):
-        v = cam.attrs.get(key)
-        if not _is_int(v) or v <= 0:
-            raise SchemaError(f"/camera: attr {key} must be a positive integer, found {v!r}")
-    W, H = int(cam.attrs["width"]), int(cam.attrs["height"])
-    if "background" in cam.attrs:
-        bg = np.asarray(cam.attrs["background"])
-        if bg.shape != (3,) or bg.dtype.kind not in "iuf" or not np.all((bg >= 0) & (bg <= 1)):
-            raise SchemaError(f"/camera: attr background must be 3 floats in [0, 1], found {bg!r}")
-    if complete or "/camera/K" in f:
-        _finite(_ds(f, "/camera/K", np.float64, (3, 3), {})[()], "/camera/K")
-    if complete or "/camera/distortion" in f:
-        _finite(_ds(f, "/camera/distortion", np.float64, (5,), {})[()], "/camera/distortion")
-
-    _validate_events(f, W, H)
-
-    for group, items in _PARTS.items():
-        if group not in f and not (complete and group == "train"):
-            continue
-        dims: dict = {"H": H, "W": W}
-        if group == "train":
-            _pair(f, "/train/poses", "/train/pose_t")
-            _pair(f, "/train/sharp", "/train/sharp_poses")
-        for name, dt, shape, _, finite in items:
-            path = f"/{group}/{name}"
-            if path in _OPTIONAL and path not in f:
-                continue
-            ds = _ds(f, path, dt, shape, dims)
-            if finite:
-                _finite(ds[()], path)
-    if "train" in f:
-        _validate_times(f)
-
-
-def _validate_times(f: h5py.File) -> None:
-    exp = f["/train/exposure"][()]
-    bad = np.flatnonzero(exp[:, 0] >= exp[:, 1])
-    if bad.size:
-        i = int(bad[0])
-        raise SchemaError(f"/train/exposure: view {i} has start {exp[i, 0]} >= end {exp[i, 1]}")
-    if "/train/pose_t" in f:
-        pt = f["/train/pose_t"][()]
-        if pt.shape[1] < 1:
-            raise SchemaError("/train/poses: expected at least one pose sample per view, found S=0")
-        out = np.argwhere((pt < exp[:, :1]) | (pt > exp[:, 1:]))
-        if len(out):
-            n, s = map(int, out[0])
-            raise SchemaError(f"/train/pose_t: sample [{n}, {s}] at t={pt[n, s]} is outside the "
-                              f"exposure [{exp[n, 0]}, {exp[n, 1]}] of view {n}")
-
-
-def _validate_events(f: h5py.File, W: int, H: int) -> None:
-    if "events" not in f:
-        raise SchemaError("/events: missing")
-    dims: dict = {}
-    ds = {name: _ds(f, f"/events/{name}", dt, ("E",), dims) for name, dt in _EVENT_DTYPES}
-    ev = f["events"]
-    _real(ev, "pos_threshold", "/events", 0.0, True)
-    _real(ev, "neg_threshold", "/events", 0.0, True)
-    _real(ev, "refractory_us", "/events", 0.0, False)
-    if "log_knee" in ev.attrs:
-        _real(ev, "log_knee", "/events", 0.0, False)
-    cf = _str(ev.attrs.get("color_filter"))
-    if cf not in COLOR_FILTERS:
-        raise SchemaError(f"/events: attr color_filter must be one of {COLOR_FILTERS}, found {cf!r}")
-    _check_sorted(ds["t"], "/events/t")
-    for start in range(0, dims["E"], CHECK_ROWS):
-        sl = slice(start, start + CHECK_ROWS)
-        p = ds["p"][sl]
-        bad = np.flatnonzero((p != 1) & (p != -1))
-        if bad.size:
-            raise SchemaError(f"/events/p: value {p[bad[0]]} at index {start + int(bad[0])} is not +1 or -1")
-        for name, limit, what in (("x", W, "width"), ("y", H, "height")):
-            v = ds[name][sl]
-            bad = np.flatnonzero(v >= limit)
-            if bad.size:
-                raise SchemaError(f"/events/{name}: value {v[bad[0]]} at index {start + int(bad[0])} "
-                                  f"is out of range ({what} {limit})")
+    return schema_validate.validate(source, require_complete, warn)
 
 
 # ------------------------------------------------------------------------------------------ read
@@ -510,8 +371,10 @@ def _validate_events(f: h5py.File, W: int, H: int) -> None:
 def read(path: str | os.PathLike, require_complete: bool = True) -> Scene:
     """Validate, then load the scene: large arrays as LazyArray, events as LazyEvents, the rest numpy."""
     path = Path(path).absolute()
+    from . import schema_validate
+
     with _open(path) as f:
-        _validate(f, require_complete)
+        schema_validate.check_open(f, require_complete)
 
         def lazy(name: str) -> LazyArray:
             return LazyArray(path, name, f[name].shape, f[name].dtype)

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from ev3dgs import schema
 from ev3dgs.errors import SchemaError
 from ev3dgs.events import Events
+from ev3dgs.geometry import rotvec_to_matrix
 from ev3dgs.schema import Test as Views  # noqa: E402  (not a pytest class)
 from ev3dgs.schema import (Camera, EventSensor, Imu, LazyArray, LazyEvents, Points, Scene, Train,
                            read, validate, write)
@@ -24,21 +25,29 @@ def random_events(rng, n, w=W, h=H):
     return Events(t, rng.integers(0, w, n), rng.integers(0, h, n), rng.choice([-1, 1], n))
 
 
+def random_poses(rng, shape):
+    """Rigid camera-to-world poses (validate rejects anything else): random rotations and translations."""
+    m = np.tile(np.eye(4), shape + (1, 1))
+    m[..., :3, :3] = rotvec_to_matrix(rng.normal(size=shape + (3,)))
+    m[..., :3, 3] = rng.normal(size=shape + (3,))
+    return m
+
+
 def make_scene(rng, n_events=500, n_views=3, samples=2, full=True, w=W, h=H):
     cam = Camera(w, h, K=np.array([[10.0, 0, w / 2], [0, 10.0, h / 2], [0, 0, 1]]),
                  distortion=rng.normal(size=5), background=(0.0, 0.5, 1.0) if full else None)
     starts = np.arange(n_views, dtype=np.int64) * 10_000
     exposure = np.stack([starts, starts + 5_000], axis=1)
     pose_t = exposure[:, :1] + np.linspace(0, 5_000, samples).astype(np.int64)[None, :]
-    poses = np.tile(np.eye(4), (n_views, samples, 1, 1)) + rng.normal(size=(n_views, samples, 4, 4)) * 0.01
+    poses = random_poses(rng, (n_views, samples))
     train = Train(rng.integers(0, 256, (n_views, h, w, 3), dtype=np.uint8), exposure, poses, pose_t,
                   rng.integers(0, 256, (n_views, h, w, 3), dtype=np.uint8) if full else None,
-                  rng.normal(size=(n_views, 4, 4)) if full else None)
+                  random_poses(rng, (n_views,)) if full else None)
     scene = Scene(name="cube", source="blender", camera=cam, events=random_events(rng, n_events, w, h),
                   sensor=EventSensor(0.25, 0.3, "RGGB", 100, log_knee=0.05 if full else None), train=train,
                   config={"seed": 3, "nested": {"a": [1, 2]}, "np": np.float32(1.5)})
     if full:
-        scene.test = Views(rng.integers(0, 256, (2, h, w, 3), dtype=np.uint8), rng.normal(size=(2, 4, 4)))
+        scene.test = Views(rng.integers(0, 256, (2, h, w, 3), dtype=np.uint8), random_poses(rng, (2,)))
         scene.points = Points(rng.normal(size=(40, 3)).astype(np.float32),
                               rng.integers(0, 256, (40, 3), dtype=np.uint8))
         scene.imu = Imu(np.arange(20, dtype=np.int64) * 1000, rng.normal(size=(20, 3)).astype(np.float32),
@@ -344,6 +353,7 @@ def test_events_checked_across_scan_blocks(tmp_path, rng, monkeypatch):
         validate(path)
 
 
+@pytest.mark.filterwarnings("ignore::ev3dgs.errors.SchemaWarning")  # random events may miss every exposure
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(n_events=st.integers(0, 300), n_views=st.integers(1, 4), samples=st.integers(1, 3),
        w=st.integers(1, 9), h=st.integers(1, 9), full=st.booleans(), seed=st.integers(0, 2**32 - 1))

@@ -1,13 +1,20 @@
 """A one-screen summary of a scene file (shared by `ev3dgs info` and `ev3dgs-ingest info`)."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from .. import schema
+from ..errors import SchemaWarning
 
 
 def describe(path: str) -> str:
-    sc = schema.read(path, require_complete=False)
+    """The summary; a file validate rejects raises its SchemaError (one line from the CLIs), and validate's
+    warnings (odd but trainable) end the summary as `warning` lines instead of Python warnings."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SchemaWarning)
+        sc = schema.read(path, require_complete=False)
     cam, ev = sc.camera, sc.events
     lines = [f"{path}: {schema.FORMAT} v{schema.VERSION}, source {sc.source!r}, name {sc.name!r}, "
              f"created {sc.created}",
@@ -25,4 +32,9 @@ def describe(path: str) -> str:
         if part is not None:
             first = next(iter(vars(part).values()))
             lines.append(f"{label:8s} {len(first)}")
+    for w in caught:
+        if issubclass(w.category, SchemaWarning):
+            lines.append(f"warning  {w.message}")
+        else:  # not ours to summarise: pass it on
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return "\n".join(lines)

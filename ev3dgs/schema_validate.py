@@ -1,0 +1,328 @@
+"""Every check a scene file must pass before anything reads it; `schema.validate` and `schema.read` call it.
+
+A problem that would stop training (or make it produce nonsense) is a SchemaError whose message starts with
+the path inside the file. Something merely odd, with which the trainer still runs, is a SchemaWarning: issued
+with warnings.warn and returned as a list of messages, so CLIs can print them as one-line `warning:`s.
+
+The events are scanned once, in blocks of schema.CHECK_ROWS rows, every check vectorised over a block: a
+100M-event file costs one sequential read of /events and bounded memory.
+"""
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from typing import Any
+
+import h5py
+import numpy as np
+
+from . import schema
+from .errors import SchemaError, SchemaWarning
+from .schema import _EVENT_DTYPES, _OPTIONAL, _PARTS, COLOR_FILTERS, FORMAT, VERSION, _is_int, _open, _str
+
+# Poses are stored as float64 but not all producers compute them in float64: pycolmap's come from unit
+# quaternions in float64 (max |R^T R - I| ~ 3e-15), while Blender hands back float32 matrix_world (the simulator's
+# pose readback, E2NeRF's transforms JSON) and LLFF poses_bounds.npy files are often float32. Measured on 1e5
+# random rotations: one float32 rounding gives 1e-7 (bound ~2*3*2^-24 = 4e-7), 20 chained float32 products
+# 9e-7, text rounded to six decimals 1.7e-6. RIGID_TOL = 1e-5 leaves a 6x margin over the worst of these, and
+# what it lets through is harmless: a scale or shear of 1e-5 moves a point by 0.01 px at a 1000 px focal
+# length. Broken poses (all zeros, a scaled rotation, a 4x4 of random numbers) are off by O(1).
+RIGID_TOL = 1e-5
+# The trainer renders in float32 (resolution 6e-8 relative): at 1e6 scene units from the origin a position is
+# resolved to 0.06 units, coarser than any scene producers write (Blender metres, COLMAP's unit-scale
+# reconstructions, DAVIS poses in metres). A larger translation is a unit or parsing error, not a scene.
+MAX_COORD = 1e6
+
+
+def validate(source: str | os.PathLike | h5py.File, require_complete: bool = True,
+             warn: bool = True) -> list[str]:
+    """Raise SchemaError (message starting with the path inside the file) if the file breaks the schema.
+
+    require_complete=False accepts an events-only file (camera width/height, events, sensor attrs).
+    Returns the warnings (odd but trainable: see SchemaWarning), also issued with warnings.warn unless warn=False.
+    """
+    if isinstance(source, h5py.Group):
+        try:
+            return check_open(source.file, require_complete, warn)
+        except (OSError, RuntimeError) as e:
+            raise SchemaError(f"{source.file.filename}: cannot read HDF5 data ({e})") from None
+        except (KeyError, ValueError, TypeError) as e:
+            if not schema._raised_in_h5py(e):
+                raise
+            raise SchemaError(f"{source.file.filename}: cannot read HDF5 object; the file may be corrupt ({e})") \
+                from None
+    with _open(source) as f:
+        return check_open(f, require_complete, warn)
+
+
+def check_open(f: h5py.File, complete: bool, warn: bool = True) -> list[str]:
+    """`validate` on an open file."""
+    notes: list[str] = []
+    _validate(f, complete, notes)
+    if warn:
+        for note in notes:
+            warnings.warn(note, SchemaWarning, stacklevel=3)
+    return notes
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+def _real(obj: h5py.HLObject, key: str, where: str, low: float, strict: bool) -> float:
+    if key not in obj.attrs:
+        raise SchemaError(f"{where}: missing attr {key}")
+    v = obj.attrs[key]
+    if not (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))) \
+            or not np.isfinite(v) or (v <= low if strict else v < low):
+        raise SchemaError(f"{where}: attr {key} must be a finite number {'>' if strict else '>='} {low}, found {v!r}")
+    return float(v)
+
+
+def _shape(path: str, found: tuple, expected: tuple, dims: dict) -> None:
+    new: dict = {}
+    ok = len(found) == len(expected)
+    for got, want in zip(found, expected) if ok else ():
+        if isinstance(want, str):
+            bound = dims.get(want, new.get(want))
+            if bound is None:
+                new[want] = got
+            ok = ok and (bound is None or bound == got)
+        else:
+            ok = ok and got == want
+    if not ok:
+        shown = [f"{w}={dims[w]}" if isinstance(w, str) and w in dims else str(w) for w in expected]
+        text = "(" + ", ".join(shown) + ("," if len(shown) == 1 else "") + ")"
+        raise SchemaError(f"{path}: expected shape {text}, found {tuple(found)}")
+    dims.update(new)
+
+
+def _ds(f: h5py.File, path: str, dtype: Any, shape: tuple, dims: dict) -> h5py.Dataset:
+    if path not in f:
+        raise SchemaError(f"{path}: missing")
+    ds = f[path]
+    if not isinstance(ds, h5py.Dataset):
+        raise SchemaError(f"{path}: expected a dataset, found a group")
+    want = np.dtype(dtype)
+    if ds.dtype.kind != want.kind or ds.dtype.itemsize != want.itemsize:
+        raise SchemaError(f"{path}: expected dtype {want}, found {ds.dtype}")
+    _shape(path, ds.shape, shape, dims)
+    return ds
+
+
+def _finite(a: np.ndarray, path: str) -> None:
+    bad = np.argwhere(~np.isfinite(a))
+    if len(bad):
+        raise SchemaError(f"{path}: non-finite value at index {list(map(int, bad[0]))}")
+
+
+def _pair(f: h5py.File, a: str, b: str) -> bool:
+    """True if both exist; SchemaError naming the missing one if only one does."""
+    ha, hb = a in f, b in f
+    if ha != hb:
+        raise SchemaError(f"{b if ha else a}: missing ({a if ha else b} is present; they come together)")
+    return ha
+
+
+def _first(mask: np.ndarray) -> list[int] | None:
+    """Index (as a list) of the first True in `mask`, None if there is none."""
+    hit = np.argwhere(mask)
+    return None if not len(hit) else [int(i) for i in hit[0]]
+
+
+# ------------------------------------------------------------------------------------ the checks
+
+def _validate(f: h5py.File, complete: bool, notes: list[str]) -> None:
+    fmt = _str(f.attrs.get("format"))
+    if fmt != FORMAT:
+        raise SchemaError(f"/: attr format is {fmt!r}, expected {FORMAT!r} (not an ev3dgs scene file)"
+                          if fmt is not None else "/: missing attr format (not an ev3dgs scene file)")
+    ver = f.attrs.get("version")
+    if not _is_int(ver):
+        raise SchemaError(f"/: attr version must be an integer, found {ver!r}")
+    if ver > VERSION:
+        raise SchemaError(f"/: schema version {int(ver)} is newer than this reader ({VERSION})")
+    if ver < 1:
+        raise SchemaError(f"/: schema version {int(ver)} is not valid")
+    for key in ("source", "name", "created", "config"):
+        if key in f.attrs and _str(f.attrs[key]) is None:
+            raise SchemaError(f"/: attr {key} must be text, found {f.attrs[key]!r}")
+    if "config" in f.attrs:
+        try:
+            config = json.loads(_str(f.attrs["config"]))
+        except ValueError as e:
+            raise SchemaError(f"/: attr config is not valid JSON ({e})") from None
+        if not isinstance(config, dict):
+            raise SchemaError(f"/: attr config must be a JSON object, found {type(config).__name__}")
+    if "bounds" in f.attrs:
+        b = np.asarray(f.attrs["bounds"])
+        if b.shape != (2, 3) or b.dtype.kind not in "iuf" or not np.all(np.isfinite(b)) or np.any(b[0] > b[1]):
+            raise SchemaError(f"/: attr bounds must be finite (2, 3) [min, max] with min <= max, found {b!r}")
+        if np.abs(b).max() > MAX_COORD:
+            raise SchemaError(f"/: attr bounds exceed {MAX_COORD:g} scene units in magnitude, found {b.tolist()}")
+
+    if "camera" not in f:
+        raise SchemaError("/camera: missing")
+    cam = f["camera"]
+    for key in ("width", "height"):
+        v = cam.attrs.get(key)
+        if not _is_int(v) or v <= 0:
+            raise SchemaError(f"/camera: attr {key} must be a positive integer, found {v!r}")
+    W, H = int(cam.attrs["width"]), int(cam.attrs["height"])
+    if "background" in cam.attrs:
+        bg = np.asarray(cam.attrs["background"])
+        if bg.shape != (3,) or bg.dtype.kind not in "iuf" or not np.all((bg >= 0) & (bg <= 1)):
+            raise SchemaError(f"/camera: attr background must be 3 floats in [0, 1], found {bg!r}")
+    if complete or "/camera/K" in f:
+        K = _ds(f, "/camera/K", np.float64, (3, 3), {})[()]
+        _finite(K, "/camera/K")
+        _intrinsics(K)
+    if complete or "/camera/distortion" in f:
+        _finite(_ds(f, "/camera/distortion", np.float64, (5,), {})[()], "/camera/distortion")
+
+    exposure = None
+    for group, items in _PARTS.items():
+        if group not in f and not (complete and group == "train"):
+            continue
+        dims: dict = {"H": H, "W": W}
+        if group == "train":
+            _pair(f, "/train/poses", "/train/pose_t")
+            _pair(f, "/train/sharp", "/train/sharp_poses")
+        for name, dt, shape, _, finite in items:
+            path = f"/{group}/{name}"
+            if path in _OPTIONAL and path not in f:
+                continue
+            ds = _ds(f, path, dt, shape, dims)
+            if finite:
+                a = ds[()]
+                _finite(a, path)
+                if name.endswith("poses"):
+                    _rigid(a, path)
+                elif np.abs(a).max(initial=0) > MAX_COORD:
+                    raise SchemaError(f"{path}: value at index {_first(np.abs(a) > MAX_COORD)} exceeds "
+                                      f"{MAX_COORD:g} scene units in magnitude")
+        # Views are what the trainer iterates over and evaluate averages over: none of them is no scene.
+        count = {"train": "N", "test": "M"}.get(group)
+        if count and dims[count] == 0:
+            raise SchemaError(f"/{group}/images: no views ({count} = 0); "
+                              + ("a scene needs at least one training view" if group == "train"
+                                 else "leave /test out instead"))
+    if "train" in f:
+        exposure = _validate_times(f)
+
+    _validate_events(f, W, H, exposure, notes)
+
+
+def _intrinsics(K: np.ndarray) -> None:
+    """A pinhole [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 (finiteness is checked before)."""
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise SchemaError(f"/camera/K: focal lengths must be > 0, found fx = K[0, 0] = {K[0, 0]!r}, "
+                          f"fy = K[1, 1] = {K[1, 1]!r}")
+    # Producers build K from fx, fy, cx, cy and write the constant entries exactly (0 and 1 survive float32).
+    if K[1, 0] != 0 or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+        raise SchemaError(f"/camera/K: not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]: "
+                          f"K[1, 0] = {K[1, 0]!r}, row 2 = {K[2].tolist()}")
+
+
+def _rigid(a: np.ndarray, path: str) -> None:
+    """Camera-to-world poses (..., 4, 4): rotation orthonormal with det +1 within RIGID_TOL, last row (0, 0, 0, 1),
+    translation within MAX_COORD. The trainer inverts them and turns them into quaternions."""
+    if not a.size:
+        return
+    R = a[..., :3, :3]
+    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-2, -1))
+    where = _first(err > RIGID_TOL)
+    if where is not None:
+        raise SchemaError(f"{path}: pose {where} is not rigid: its rotation part is not orthonormal "
+                          f"(max |R^T R - I| = {err[tuple(where)]:.3g}, tolerance {RIGID_TOL:g})")
+    det = np.linalg.det(R)
+    where = _first(det < 0)
+    if where is not None:
+        raise SchemaError(f"{path}: pose {where} is not rigid: its rotation part is a reflection "
+                          f"(det = {det[tuple(where)]:.3g}, expected +1)")
+    row = np.abs(a[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(axis=-1)
+    where = _first(row > RIGID_TOL)
+    if where is not None:
+        raise SchemaError(f"{path}: pose {where} is not rigid: last row is {a[tuple(where)][3].tolist()}, "
+                          f"expected [0, 0, 0, 1]")
+    t = np.abs(a[..., :3, 3]).max(axis=-1)
+    where = _first(t > MAX_COORD)
+    if where is not None:
+        raise SchemaError(f"{path}: pose {where} has translation {a[tuple(where)][:3, 3].tolist()}, beyond "
+                          f"{MAX_COORD:g} scene units (a unit or parsing error?)")
+
+
+def _validate_times(f: h5py.File) -> np.ndarray:
+    """Exposure windows and pose times; returns the (N, 2) exposure."""
+    exp = f["/train/exposure"][()]
+    bad = np.flatnonzero(exp[:, 0] >= exp[:, 1])
+    if bad.size:
+        i = int(bad[0])
+        raise SchemaError(f"/train/exposure: view {i} has start {exp[i, 0]} >= end {exp[i, 1]}")
+    if "/train/pose_t" in f:
+        pt = f["/train/pose_t"][()]
+        if pt.shape[1] < 1:
+            raise SchemaError("/train/poses: expected at least one pose sample per view, found S=0")
+        # The trainer interpolates between neighbouring samples (searchsorted): times must increase, and two
+        # different poses at one instant would be a contradiction.
+        where = _first(np.diff(pt, axis=1) <= 0)
+        if where is not None:
+            n, s = where
+            raise SchemaError(f"/train/pose_t: view {n} pose times are not increasing "
+                              f"(sample {s + 1} at t={pt[n, s + 1]} follows t={pt[n, s]})")
+        out = np.argwhere((pt < exp[:, :1]) | (pt > exp[:, 1:]))
+        if len(out):
+            n, s = map(int, out[0])
+            raise SchemaError(f"/train/pose_t: sample [{n}, {s}] at t={pt[n, s]} is outside the "
+                              f"exposure [{exp[n, 0]}, {exp[n, 1]}] of view {n}")
+    return exp
+
+
+def _validate_events(f: h5py.File, W: int, H: int, exposure: np.ndarray | None, notes: list[str]) -> None:
+    if "events" not in f:
+        raise SchemaError("/events: missing")
+    dims: dict = {}
+    ds = {name: _ds(f, f"/events/{name}", dt, ("E",), dims) for name, dt in _EVENT_DTYPES}
+    ev = f["events"]
+    _real(ev, "pos_threshold", "/events", 0.0, True)
+    _real(ev, "neg_threshold", "/events", 0.0, True)
+    _real(ev, "refractory_us", "/events", 0.0, False)
+    if "log_knee" in ev.attrs:  # the trainer takes log(knee) and divides by it: 0 is not a knee
+        _real(ev, "log_knee", "/events", 0.0, True)
+    cf = _str(ev.attrs.get("color_filter"))
+    if cf not in COLOR_FILTERS:
+        raise SchemaError(f"/events: attr color_filter must be one of {COLOR_FILTERS}, found {cf!r}")
+
+    E, rows = dims["E"], schema.CHECK_ROWS
+    inside = 0          # events within [start, end] of some exposure (counted until the first block with any)
+    last = None
+    for start in range(0, E, rows):
+        sl = slice(start, start + rows)
+        t = ds["t"][sl]
+        seq = t if last is None else np.concatenate(([last], t))
+        bad = np.flatnonzero(seq[1:] < seq[:-1])
+        if bad.size:
+            first = (start if last is None else start - 1) + int(bad[0]) + 1
+            raise SchemaError(f"/events/t: not sorted (first decrease at index {first})")
+        last = t[-1]
+        p = ds["p"][sl]
+        bad = np.flatnonzero((p != 1) & (p != -1))
+        if bad.size:
+            raise SchemaError(f"/events/p: value {p[bad[0]]} at index {start + int(bad[0])} is not +1 or -1")
+        for name, limit, what in (("x", W, "width"), ("y", H, "height")):
+            v = ds[name][sl]
+            bad = np.flatnonzero(v >= limit)
+            if bad.size:
+                raise SchemaError(f"/events/{name}: value {v[bad[0]]} at index {start + int(bad[0])} "
+                                  f"is out of range ({what} {limit})")
+        if exposure is not None and not inside:
+            # t is sorted: the events in [a, b] of this block are t[searchsorted(a):searchsorted(b, right)].
+            inside = int((np.searchsorted(t, exposure[:, 1], "right") - np.searchsorted(t, exposure[:, 0])).sum())
+
+    # Warnings, not errors: the trainer runs (blur loss only, or events in one bin); the data are odd enough
+    # that a person should look at them (clock offset between frames and events? a stuck timestamp?).
+    if exposure is not None and not inside:
+        notes.append("/events: no event lies inside any /train/exposure window; the event loss has nothing to "
+                     "use" + (" (the file has no events)" if E == 0 else
+                              " (are the event and frame clocks the same?)"))
+    if E > 1 and ds["t"][0] == ds["t"][E - 1]:
+        notes.append(f"/events/t: all {E} events have the same time {int(ds['t'][0])} us")
