@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -15,6 +14,17 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):  # argparse's usage dump -> our one line, exit 2
         print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
         raise SystemExit(2)
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (nan and inf are refused with one line, exit 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
 
 
 def parser(prog: str, description: str) -> argparse.ArgumentParser:
@@ -34,28 +44,78 @@ def dispatch(build_parser: Callable[[], argparse.ArgumentParser], argv: list[str
     return run(_main, argv)
 
 
+_EXTRAS = {"gsplat": "pip install ev3dgs[cuda] (gsplat, for --backend cuda)",
+           "ray": "pip install ev3dgs[ray] (for --executor ray)"}
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _from_h5py(e: BaseException) -> bool:
+    """Raised inside h5py (its errors are OSError, KeyError, RuntimeError, ValueError... with HDF5 text)."""
+    tb = e.__traceback__
+    last = None
+    while tb is not None:
+        last = tb.tb_frame.f_code.co_filename
+        tb = tb.tb_next
+    return last is not None and "h5py" in last.replace("\\", "/").split("/")[:-1]
+
+
+def error_message(e: BaseException) -> str | None:
+    """The one-line message for an error a user can act on, or None for a bug (which keeps its traceback)."""
+    from ..outputs import _is_write_failure, os_error_message
+
+    if isinstance(e, Ev3dgsError):
+        return str(e)
+    if isinstance(e, ModuleNotFoundError) and e.name and not e.name.startswith("ev3dgs"):
+        root = e.name.split(".")[0]
+        hint = _EXTRAS.get(root, f"pip install {root}")
+        return f"this needs the optional package {root!r}, which is not installed: {hint}"
+    if _from_h5py(e):
+        return f"HDF5: {e}"
+    if isinstance(e, OSError):
+        return os_error_message(e)
+    if isinstance(e, RuntimeError) and _is_write_failure(e):
+        return f"a file could not be written ({_one_line(e).split(' Exception raised from')[0]})"
+    if isinstance(e, MemoryError):
+        return "out of memory"
+    return None
+
+
 def run(main: Callable[[list[str] | None], int], argv: list[str] | None = None) -> int:
-    """Call main; turn our errors into `error: ...` on stderr and exit code 2."""
+    """Call main; turn our errors, OS errors (disk full, read-only, missing files), h5py errors and missing
+    optional packages into one line `error: ...` on stderr and exit code 2. EV3DGS_DEBUG=1 re-raises them
+    with their traceback instead."""
+    import warnings
+
+    def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+        # our warnings (damaged packets, odd scenes) are for users: one line each, no source location
+        print(f"warning: {_one_line(message)}", file=file or sys.stderr)
+
     try:
-        return main(argv) or 0
-    except Ev3dgsError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            return main(argv) or 0
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:
+        message = error_message(e)
+        if message is None or os.environ.get("EV3DGS_DEBUG", "") not in ("", "0"):
+            raise
+        print(f"error: {_one_line(message)}", file=sys.stderr)
+        return 2
 
 
 def write_atomic(path: str | Path, data: bytes) -> None:
     """Write bytes to a temporary file beside `path`, then rename: readers never see half a file."""
+    from ..outputs import atomic_path, remove_stale_temps
+
     path = Path(path)
     if not path.parent.exists():
         raise Ev3dgsError(f"output folder does not exist: {path.parent}")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
+    remove_stale_temps(path.parent, path.name)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
             f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

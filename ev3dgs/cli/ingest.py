@@ -3,18 +3,41 @@ from __future__ import annotations
 
 import sys
 
-from .common import dispatch, parser, subparsers
+from .common import dispatch, finite_float, parser, subparsers
+
+
+def _input_file(path: str) -> None:
+    from pathlib import Path
+
+    from ..errors import InputError
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: no such file")
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder, not a file")
+
+
+def _output_file(out: str, estimated_bytes: int) -> None:
+    from pathlib import Path
+
+    from ..outputs import check_output_file, remove_stale_temps
+
+    check_output_file(out, estimated_bytes, make_parents=True)
+    if Path(out).parent.is_dir():
+        remove_stale_temps(Path(out).parent, Path(out).name)
 
 
 def _info(args) -> int:
     from ..io.recording import MAGIC
 
+    _input_file(args.file)
     with open(args.file, "rb") as f:
         head = f.read(16)
     if any(head.startswith(m) for m in MAGIC):
         from ..io.recording import open_recording
 
-        with open_recording(args.file) as reader:
+        with open_recording(args.file, strict=args.strict) as reader:
             info = reader.info()
         print(f"{args.file}: {reader.format}")
         for key, value in (info.items() if isinstance(info, dict) else vars(info).items()):
@@ -29,13 +52,18 @@ def _info(args) -> int:
 
 
 def _davis(args) -> int:
+    import os
+
     from ..io.davis import DavisOptions, ingest_davis
 
+    _input_file(args.recording)
+    # a rough lower bound: the events kept (a fraction of the recording with --events margin) and the frames
+    _output_file(args.out, os.path.getsize(args.recording) // (4 if args.events == "all" else 20))
     opts = DavisOptions(every=args.every, max_views=args.max_views, min_exposure_us=args.min_exposure_us,
                         events=args.events, event_margin_ms=args.event_margin_ms, subposes=args.subposes,
                         poses=not args.no_poses, calibration=args.calibration, frames_stream=args.frames_stream,
                         events_stream=args.events_stream, pos_threshold=args.pos_threshold,
-                        neg_threshold=args.neg_threshold, color_filter=args.color_filter)
+                        neg_threshold=args.neg_threshold, color_filter=args.color_filter, strict=args.strict)
     stats = ingest_davis(args.recording, args.out, opts)
     for w in stats.warnings:
         print(f"warning: {w}", file=sys.stderr)
@@ -49,6 +77,7 @@ def _davis(args) -> int:
 def _e2nerf(args) -> int:
     from ..io.e2nerf import import_e2nerf
 
+    _output_file(args.out, 0)
     path = import_e2nerf(args.directory, args.out, pos_threshold=args.pos_threshold,
                          neg_threshold=args.neg_threshold)
     if not args.quiet:
@@ -60,32 +89,51 @@ def build_parser():
     p = parser("ev3dgs-ingest", "Bring event-camera recordings and datasets into the ev3dgs scene schema.")
     sub = subparsers(p)
     i = sub.add_parser("info", help="summarise a recording (.aedat4/.aedat/.aedat3) or a scene file (.h5)")
-    i.add_argument("file")
+    i.add_argument("file", help="recording (.aedat4/.aedat/.aedat3) or scene file (.h5)")
+    i.add_argument("--strict", action="store_true",
+                   help="fail (exit 2) on the first corrupt packet or value the recording contradicts (default: off: "
+                        "drop it with a warning)")
     i.set_defaults(func=_info)
     d = sub.add_parser("davis", help="a DAVIS346 recording -> scene.h5 (EDI + pycolmap poses)")
-    d.add_argument("recording")
-    d.add_argument("--out", required=True)
-    d.add_argument("--calibration", help="DV/OpenCV camera-calibration XML, or TOML/JSON (fx fy cx cy ...)")
-    d.add_argument("--every", type=int, default=1, help="use every K-th APS frame")
-    d.add_argument("--max-views", type=int)
-    d.add_argument("--min-exposure-us", type=int, default=0)
-    d.add_argument("--events", choices=("all", "margin"), default="margin")
-    d.add_argument("--event-margin-ms", type=float, default=10.0)
-    d.add_argument("--subposes", type=int, default=5, help="EDI latent frames / poses per view")
-    d.add_argument("--no-poses", action="store_true")
-    d.add_argument("--frames-stream")
-    d.add_argument("--events-stream")
-    d.add_argument("--pos-threshold", type=float, default=0.2)
-    d.add_argument("--neg-threshold", type=float, default=0.2)
-    d.add_argument("--color-filter", default="none", help="Bayer pattern of a colour DAVIS346's DVS (e.g. RGGB)")
-    d.add_argument("--quiet", action="store_true")
+    d.add_argument("recording", help="DAVIS recording (.aedat4, .aedat3 or .aedat 2.0)")
+    d.add_argument("--out", required=True, help="output scene file (.h5, written atomically)")
+    d.add_argument("--calibration", help="DV/OpenCV camera-calibration XML, or TOML/JSON (fx fy cx cy ...) "
+                                         "(default: none, pycolmap estimates the intrinsics)")
+    d.add_argument("--every", type=int, default=1, help="use every K-th APS frame (default %(default)s = every frame)")
+    d.add_argument("--max-views", type=int, help="keep at most this many views (default: no limit)")
+    d.add_argument("--min-exposure-us", type=int, default=0,
+                   help="skip APS frames exposed for less than this, in microseconds (default %(default)s us)")
+    d.add_argument("--events", choices=("all", "margin"), default="margin",
+                   help="which events to keep: margin keeps only the events within --event-margin-ms before or "
+                        "after the exposure of a used view (the default, %(default)s); all keeps the whole "
+                        "recording")
+    d.add_argument("--event-margin-ms", type=finite_float, default=10.0,
+                   help="with --events margin: milliseconds kept either side of each used exposure "
+                        "(default %(default)s ms)")
+    d.add_argument("--subposes", type=int, default=5, help="EDI latent frames / poses per view (default %(default)s)")
+    d.add_argument("--no-poses", action="store_true",
+                   help="skip EDI + pycolmap pose estimation (default: off, poses are estimated)")
+    d.add_argument("--frames-stream", help="AEDAT4 stream name of the APS frames (default: the first frame stream)")
+    d.add_argument("--events-stream", help="AEDAT4 stream name of the events (default: the first event stream)")
+    d.add_argument("--pos-threshold", type=finite_float, default=0.2,
+                   help="ON contrast threshold in log intensity; not stored in recordings (default %(default)s)")
+    d.add_argument("--neg-threshold", type=finite_float, default=0.2,
+                   help="OFF contrast threshold in log intensity (default %(default)s)")
+    d.add_argument("--color-filter", default="none",
+                   help="Bayer pattern of a colour DAVIS346's DVS, e.g. RGGB (default %(default)s)")
+    d.add_argument("--quiet", action="store_true", help="no summary line (default: off)")
+    d.add_argument("--strict", action="store_true",
+                   help="fail (exit 2) on the first corrupt packet or value the recording contradicts (default: off: "
+                        "drop it with a warning)")
     d.set_defaults(func=_davis)
     e = sub.add_parser("e2nerf", help="an E2NeRF dataset folder (synthetic or real) -> scene.h5")
-    e.add_argument("directory")
-    e.add_argument("--out", required=True)
-    e.add_argument("--pos-threshold", type=float, default=0.2)
-    e.add_argument("--neg-threshold", type=float, default=0.2)
-    e.add_argument("--quiet", action="store_true")
+    e.add_argument("directory", help="E2NeRF scene folder (synthetic or real-world layout)")
+    e.add_argument("--out", required=True, help="output scene file (.h5, written atomically)")
+    e.add_argument("--pos-threshold", type=finite_float, default=0.2,
+                   help="ON contrast threshold in log intensity (default %(default)s)")
+    e.add_argument("--neg-threshold", type=finite_float, default=0.2,
+                   help="OFF contrast threshold in log intensity (default %(default)s)")
+    e.add_argument("--quiet", action="store_true", help="no summary line (default: off)")
     e.set_defaults(func=_e2nerf)
     return p
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from .common import dispatch, parser, subparsers
+from .common import dispatch, finite_float, parser, subparsers
 
 
 def _events(args) -> int:
@@ -14,6 +14,9 @@ def _events(args) -> int:
     from ..sim.npz import load_frames_npz
     from ..sim.output import event_sensor, provenance
 
+    from ..outputs import check_output_file
+
+    check_output_file(args.out, make_parents=True)  # before simulating; schema.write checks the space it needs
     cfg = load_sim_config(args.config)
     frames, t_us = load_frames_npz(args.input)
     ev = simulate_events(frames, t_us, cfg.dvs, seed=args.seed)
@@ -43,6 +46,9 @@ def _blur(args) -> int:
     from ..sim.npz import load_frames_npz
     from .common import write_atomic
 
+    from ..outputs import check_output_file
+
+    check_output_file(args.out)
     cfg = load_sim_config(args.config)
     frames, _ = load_frames_npz(args.input, need_t=False)
     if frames.ndim == 3:
@@ -93,7 +99,10 @@ def _make_dataset(args) -> int:
 def _record(args) -> int:
     from ..sim.record import record
 
+    from ..outputs import check_output_file
+
     w, h = args.size if args.size else (346, 260)
+    check_output_file(args.out)
     info = record(args.scene, args.out, seconds=args.seconds, fps=args.fps, exposure_ms=args.exposure_ms,
                   render_rate_hz=args.render_rate, width=w, height=h, samples=args.samples, seed=args.seed,
                   workers=args.workers, quiet=args.quiet)
@@ -121,49 +130,67 @@ def build_parser():
     e = sub.add_parser("events", help="frames (.npz: frames, t_us) -> events in a scene file (.h5)")
     e.add_argument("input", help=".npz with frames (T,H,W[,3]) float linear (1.0 = white) and t_us (T,) int64")
     e.add_argument("--out", required=True, help="output .h5 (written atomically)")
-    e.add_argument("--config", help="TOML with [dvs] settings and effect tables (see ev3dgs.sim.config)")
-    e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--quiet", action="store_true")
+    e.add_argument("--config", help="TOML with [dvs] settings and effect tables, see ev3dgs.sim.config "
+                                    "(default: none, the built-in DVS346-like settings)")
+    e.add_argument("--seed", type=int, default=0, help="random seed of the noise effects (default %(default)s)")
+    e.add_argument("--quiet", action="store_true", help="no summary line (default: off)")
     e.set_defaults(func=_events)
     b = sub.add_parser("blur", help="sub-frames (.npz: frames) -> one blurry sRGB image")
     b.add_argument("input", help=".npz with frames (S,H,W,3): uint8 sRGB or float linear")
     b.add_argument("--out", required=True, help="output image (.png/.jpg/.tif, written atomically)")
-    b.add_argument("--config", help="TOML with [isp] and [sensor_noise] tables")
-    b.add_argument("--seed", type=int, default=0)
-    b.add_argument("--quiet", action="store_true")
+    b.add_argument("--config", help="TOML with [isp] and [sensor_noise] tables "
+                                    "(default: none, the built-in ISP and noise)")
+    b.add_argument("--seed", type=int, default=0, help="random seed of the sensor noise (default %(default)s)")
+    b.add_argument("--quiet", action="store_true", help="no summary line (default: off)")
     b.set_defaults(func=_blur)
     m = sub.add_parser("make-dataset", help="render a scene in Blender -> events + blurry frames -> scene.h5")
     m.add_argument("--scene", required=True, help="built-in scene name (see list-scenes) or a scene .toml")
-    m.add_argument("--blend", help="render this .blend (an object near the origin) with our cameras")
+    m.add_argument("--blend", help="render this .blend (an object near the origin) with our cameras "
+                                       "(default: none, the scene's builder makes the geometry)")
     m.add_argument("--out", required=True, help="output scene .h5 (written atomically)")
-    m.add_argument("--views", type=int, help="training views")
-    m.add_argument("--test-views", type=int, help="sharp novel test views")
-    m.add_argument("--size", type=_size, help="image size WxH")
-    m.add_argument("--subframes", type=int, help="sub-frames rendered per exposure (default 17)")
-    m.add_argument("--exposure-ms", type=float, help="exposure time (default 100 ms)")
-    m.add_argument("--samples", type=int, help="Cycles samples per pixel")
-    m.add_argument("--workers", type=int, default=1, help="Blender processes (or Ray actors) rendering in parallel")
+    m.add_argument("--views", type=int, help="training views (default: the scene's, 24 for built-ins; 4 with --quick)")
+    m.add_argument("--test-views", type=int,
+                   help="sharp novel test views (default: the scene's, 6 for built-ins; 2 with --quick)")
+    m.add_argument("--size", type=_size, help="image size WxH in pixels (default: the scene's; 96x72 with --quick)")
+    m.add_argument("--subframes", type=int,
+                   help="sub-frames rendered per exposure (default: the scene's, 17 for built-ins)")
+    m.add_argument("--exposure-ms", type=finite_float,
+                   help="exposure time in milliseconds (default: the scene's, 100 ms for built-ins)")
+    m.add_argument("--samples", type=int,
+                   help="Cycles samples per pixel (default: the scene's, 64 for built-ins; 8 with --quick)")
+    m.add_argument("--workers", type=int, default=1,
+                   help="Blender processes (or Ray actors) rendering in parallel (default %(default)s)")
     m.add_argument("--executor", choices=("local", "ray"), default="local",
-                   help="where the Blender workers run: local processes, or Ray actors (needs ev3dgs[ray])")
+                   help="where the Blender workers run: local processes, or Ray actors (needs ev3dgs[ray]) "
+                        "(default %(default)s)")
     m.add_argument("--address", help="Ray cluster address (HEAD:6379, auto, ray://HEAD:10001); "
                                      "default: a local Ray instance. Only with --executor ray")
-    m.add_argument("--seed", type=int, default=0)
-    m.add_argument("--quick", action="store_true", help="small images, few views and samples (minutes on 2 cores)")
-    m.add_argument("--keep-cache", action="store_true", help="keep the rendered views beside the output")
-    m.add_argument("--quiet", action="store_true")
+    m.add_argument("--seed", type=int, default=0, help="random seed of the camera shake, views and noise "
+                                                      "(default %(default)s)")
+    m.add_argument("--quick", action="store_true",
+                   help="small images, few views and samples, minutes on 2 cores (default: off)")
+    m.add_argument("--keep-cache", action="store_true",
+                   help="keep the rendered views beside the output (default: off, removed once the "
+                        "scene file is written)")
+    m.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
     m.set_defaults(func=_make_dataset)
     r = sub.add_parser("record", help="a DAVIS346-like AEDAT 4.0 recording of a scene along a hand-held path")
     r.add_argument("--scene", required=True, help="built-in scene name or a scene .toml")
     r.add_argument("--out", required=True, help="output .aedat4 (the ground truth goes beside it)")
-    r.add_argument("--seconds", type=float, default=2.0)
-    r.add_argument("--fps", type=float, default=10.0, help="APS frames per second")
-    r.add_argument("--exposure-ms", type=float, default=50.0)
-    r.add_argument("--render-rate", type=float, default=250.0, help="rendered frames per second (event input)")
+    r.add_argument("--seconds", type=finite_float, default=2.0,
+                   help="length of the recording in seconds (default %(default)s s)")
+    r.add_argument("--fps", type=finite_float, default=10.0, help="APS frames per second (default %(default)s)")
+    r.add_argument("--exposure-ms", type=finite_float, default=50.0,
+                   help="APS exposure time in milliseconds (default %(default)s ms)")
+    r.add_argument("--render-rate", type=finite_float, default=250.0,
+                   help="rendered frames per second, the event simulator's input (default %(default)s)")
     r.add_argument("--size", type=_size, help="sensor size WxH (default 346x260)")
-    r.add_argument("--samples", type=int, default=8)
-    r.add_argument("--workers", type=int, default=1)
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--quiet", action="store_true")
+    r.add_argument("--samples", type=int, default=8, help="Cycles samples per pixel (default %(default)s)")
+    r.add_argument("--workers", type=int, default=1, help="Blender processes rendering in parallel "
+                                                         "(default %(default)s)")
+    r.add_argument("--seed", type=int, default=0, help="random seed of the hand-held path and noise "
+                                                      "(default %(default)s)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
     r.set_defaults(func=_record)
     ls = sub.add_parser("list-scenes", help="the built-in scenes: names first, then descriptions")
     ls.set_defaults(func=_list_scenes)

@@ -23,6 +23,7 @@ from .. import schema
 from ..errors import Ev3dgsError, InputError
 from ..events import Events
 from ..geometry import intrinsics
+from ..outputs import OutputError, atomic_path, check_output_file, os_error_message, remove_stale_temps
 from .blur import blur_frames
 from .dvs import DVSSimulator
 from .isp import forward_isp, inverse_isp
@@ -52,10 +53,34 @@ def _cache_key(spec: SceneSpec, render: Render, blend: Path | None, seed: int) -
 
 
 def _save_npz(path: Path, **arrays) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:  # on failure: temporary removed, OutputError naming the reason
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+
+_BLEND_MAGIC = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")  # plain, gzip- or zstd-compressed .blend
+
+
+def _check_blend(blend: Path) -> None:
+    """A .blend that Blender cannot open fails in the worker with a traceback: refuse it here."""
+    try:
+        with open(blend, "rb") as f:
+            head = f.read(8)
+    except OSError as e:
+        raise InputError(f"cannot read --blend {os_error_message(e, blend)}") from None
+    if not head.startswith(_BLEND_MAGIC):
+        raise InputError(f"{blend}: not a .blend file (it does not start with BLENDER)")
+
+
+def _estimate_bytes(render: Render, cache: Path) -> int:
+    """Disk space make_dataset still needs: the render cache (float32 frames) and the scene file."""
+    px = render.width * render.height * 3
+    frames = render.views * (render.subframes + 1) + render.test_views
+    have = 0
+    with contextlib.suppress(OSError):
+        have = sum(e.stat().st_size for e in os.scandir(cache) if e.is_file())
+    out = (2 * render.views + render.test_views) * px // 2    # u1 images, gzip; events come on top
+    return max(0, frames * px * 4 - have) + out
 
 
 def _load_npz(path: Path) -> dict | None:
@@ -102,7 +127,8 @@ def render_all(jobs: dict[str, np.ndarray], init_kwargs: dict, cache: Path, work
             for key, frames, readback, info in done:
                 _save_npz(cache / f"{key}.npz", frames=frames, poses=readback)
                 results[key] = {"frames": frames, "poses": readback}
-                info_path.write_text(json.dumps(info))
+                with atomic_path(info_path) as tmp:
+                    tmp.write_text(json.dumps(info))
                 bar.update(1)
     except WorkerCrashed:
         raise Ev3dgsError(f"a Blender worker crashed; {len(results)} of {len(jobs)} views are cached in "
@@ -125,11 +151,11 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
     out = Path(out)
     if out.suffix not in (".h5", ".hdf5"):
         raise InputError(f"--out must end in .h5, got {out}")
-    if not out.parent.is_dir():
-        raise InputError(f"output folder does not exist: {out.parent}")
     blend = Path(blend) if blend is not None else None
     if blend is not None and not blend.is_file():
         raise InputError(f".blend file not found: {blend}")
+    if blend is not None:
+        _check_blend(blend)
     if blend is None and spec.builder is None:
         raise InputError(f"scene {spec.name!r} names no builder; give --blend FILE")
     if workers < 1:
@@ -146,7 +172,14 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
             for p in plans}
     jobs.update({f"test_{j:04d}": pose[None] for j, pose in enumerate(novel_view_poses(render, seed))})
     cache = out.parent / f".{out.stem}.cache-{_cache_key(spec, render, blend, seed)}"
-    cache.mkdir(exist_ok=True)
+    # before any rendering: the output can be written, with room for the cache and the file
+    check_output_file(out, _estimate_bytes(render, cache))
+    remove_stale_temps(out.parent, out.name)   # left by a killed run: the scene file's temporary
+    try:
+        cache.mkdir(exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot create the render cache {os_error_message(e, cache)}", e.errno) from None
+    remove_stale_temps(cache)                  # and the cached views' temporaries
     init_kwargs = dict(builder=None if blend else spec.builder, params=spec.params,
                        blend_path=str(blend) if blend else None, width=W, height=H, K=K.tolist(),
                        samples=render.samples, denoise=render.denoise, background=list(render.background),
@@ -157,7 +190,7 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
     stats.views_cached = len(jobs) - stats.views_rendered
     stats.seconds["render"] = time.perf_counter() - t0
 
-    sim = DVSSimulator(H, W, spec.sensor.dvs, seed=seed)
+    sim = DVSSimulator(H, W, spec.sensor.dvs, seed=seed, isp=spec.sensor.isp)
     sim_s = isp_s = 0.0
     images, sharp, sharp_poses, poses, pose_t, exposure, parts = [], [], [], [], [], [], []
     for p in plans:

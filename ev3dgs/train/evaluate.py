@@ -3,7 +3,6 @@ sharp ground truth, with the blurry inputs as the baseline; metrics.json and sid
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
@@ -53,9 +52,10 @@ def _scores(pred: list, truth) -> dict:
 def _png(path: Path, *images) -> None:
     row = np.hstack([np.pad(np.asarray(i), ((1, 1), (1, 1), (0, 0)), constant_values=255) for i in images])
     ok, data = cv2.imencode(".png", cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(data.tobytes())
-    os.replace(tmp, path)
+    from ..outputs import atomic_path
+
+    with atomic_path(path) as tmp:  # removes the temporary and names the reason on failure
+        tmp.write_bytes(data.tobytes())
 
 
 def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str = "auto",
@@ -63,6 +63,11 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
     run = Path(run_dir)
     dev = resolve_device(device)
     cfg, model = load_run(run, dev)
+    from ..outputs import check_output_dir, remove_stale_temps
+
+    check_output_dir(run, option="run folder")  # writable? before rendering every view
+    for folder in (run, run / "eval"):
+        remove_stale_temps(folder)
     sc = schema.read(cfg.scene)
     W, H = sc.camera.width, sc.camera.height
     K = torch.as_tensor(sc.camera.K, dtype=model.dtype, device=dev)
@@ -91,7 +96,8 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
             _png(out_dir / f"train_{i:03d}.png", b, p, s)
     if "test" not in metrics and "train_sharp" not in metrics:
         raise InputError(f"{cfg.scene}: no sharp ground truth (/test or /train/sharp) to evaluate against")
-    tmp = run / f".metrics.json.tmp-{os.getpid()}"
-    tmp.write_text(json.dumps(metrics, indent=2))
-    os.replace(tmp, run / "metrics.json")
+    from ..outputs import atomic_path
+
+    with atomic_path(run / "metrics.json") as tmp:
+        tmp.write_text(json.dumps(metrics, indent=2))
     return metrics

@@ -61,15 +61,16 @@ def save_ply(model: GaussianModel, path: str | os.PathLike) -> Path:
         vertex[name] = flat[:, i]
     ply = PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<")
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    from ..outputs import OutputError, atomic_path, os_error_message, remove_stale_temps
+
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot write {os_error_message(e, path.parent)}", e.errno) from None
+    remove_stale_temps(path.parent, path.name)
+    with atomic_path(path) as tmp:  # removes the temporary and names the reason on failure
         with open(tmp, "wb") as f:
             ply.write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -153,7 +153,10 @@ def write_frames(frames: Iterable[np.ndarray], out: str | os.PathLike, fps: floa
     if out.suffix.lower() == ".mp4":
         if not fps > 0:
             raise InputError(f"fps must be > 0, got {fps}")
+        from ..outputs import remove_stale_temps
+
         out.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(out.parent, out.stem)  # left by a killed render of the same file
         tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}.mp4")
         writer, size, n = None, None, 0
         try:
@@ -175,8 +178,10 @@ def write_frames(frames: Iterable[np.ndarray], out: str | os.PathLike, fps: floa
         finally:
             if writer is not None:
                 writer.release()
-            if tmp.exists():
+            try:
                 tmp.unlink()
+            except OSError:  # missing, or a read-only folder: never hide the real error
+                pass
         return n
     out.mkdir(parents=True, exist_ok=True)
     size, n = None, 0
@@ -185,6 +190,9 @@ def write_frames(frames: Iterable[np.ndarray], out: str | os.PathLike, fps: floa
         size = bgr.shape[:2]
         dst = out / f"frame_{i:04d}.png"
         if not cv2.imwrite(str(dst), bgr):
-            raise InputError(f"cannot write {dst}")
+            from ..outputs import OutputError, check_output_dir
+
+            check_output_dir(out, bgr.nbytes)  # says why (read-only, no space) when it can
+            raise OutputError(f"cannot write {dst}")
         n += 1
     return n
