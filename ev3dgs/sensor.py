@@ -17,3 +17,11 @@ def cfa_channels(pattern: str, height: int, width: int) -> np.ndarray:
     block = np.array([[_CHANNEL[pattern[0]], _CHANNEL[pattern[1]]],
                       [_CHANNEL[pattern[2]], _CHANNEL[pattern[3]]]])
     return np.tile(block, ((height + 1) // 2, (width + 1) // 2))[:height, :width]
+
+
+def camera_raw_matrix(ccm, white_balance) -> np.ndarray:
+    """3x3 M with camera raw = M @ linear sRGB, for an ISP whose forward path is white balance (gains)
+    then colour matrix `ccm` (camera -> linear sRGB): M = inv(ccm) divided row-wise by the gains. Under a
+    Bayer filter a DVS pixel sees its channel of this raw, as the frame's raw pixel does (ev3dgs.sim.isp)."""
+    m = np.linalg.inv(np.asarray(ccm, dtype=np.float64))
+    return m / np.asarray(white_balance, dtype=np.float64)[:, None]

@@ -10,6 +10,9 @@ from ev3dgs.errors import InputError
 from ev3dgs.logmap import DEFAULT_LOG_KNEE, safe_log
 from ev3dgs.sim import DVSConfig, DVSSimulator, simulate_events
 from ev3dgs.sim.config import Leak, LowPass, Refractory, ShotNoise, ThresholdMismatch
+from ev3dgs.sim.kernel import TOL
+
+EXACT = DVSConfig(reference="exact")  # reference = the first frame: deterministic counts for closed forms
 
 
 def ramp(log_change, n_frames=2, duration_us=10_000, start=0.5, shape=(1, 1)):
@@ -21,7 +24,7 @@ def ramp(log_change, n_frames=2, duration_us=10_000, start=0.5, shape=(1, 1)):
 @pytest.mark.parametrize("n_frames", [2, 3, 11])
 def test_linear_log_rise_gives_exact_on_events(n_frames):
     frames, t = ramp(1.1, n_frames)
-    ev = simulate_events(frames, t)
+    ev = simulate_events(frames, t, EXACT)
     expected = [k * 0.2 / 1.1 * 10_000 for k in range(1, 6)]
     assert len(ev) == 5 and (ev.p == 1).all()
     assert np.abs(ev.t - np.array(expected)).max() <= 1.0
@@ -29,7 +32,7 @@ def test_linear_log_rise_gives_exact_on_events(n_frames):
 
 def test_fall_gives_off_and_constant_gives_none():
     frames, t = ramp(-1.1)
-    ev = simulate_events(frames, t)
+    ev = simulate_events(frames, t, EXACT)
     assert len(ev) == 5 and (ev.p == -1).all()
     assert np.abs(ev.t - np.array([k * 0.2 / 1.1 * 1e4 for k in range(1, 6)])).max() <= 1.0
     assert len(simulate_events(np.full((5, 4, 4), 0.3), np.arange(5) * 1000)) == 0
@@ -38,13 +41,13 @@ def test_fall_gives_off_and_constant_gives_none():
 def test_residual_carries_to_the_next_frame():
     # log steps of 0.15 per frame: nothing in the first interval, one event 1/3 into the second
     frames = (0.5 * np.exp(np.array([0.0, 0.15, 0.30])))[:, None, None] * np.ones((1, 1, 1))
-    ev = simulate_events(frames, np.array([0, 1000, 2000]))
+    ev = simulate_events(frames, np.array([0, 1000, 2000]), EXACT)
     assert list(ev.p) == [1]
     assert abs(ev.t[0] - (1000 + 1000 * 0.05 / 0.15)) <= 1
 
 
 def test_on_off_asymmetry():
-    cfg = DVSConfig(pos_threshold=0.1, neg_threshold=0.3)
+    cfg = DVSConfig(pos_threshold=0.1, neg_threshold=0.3, reference="exact")
     up, t = ramp(0.65)
     down, _ = ramp(-0.65)
     assert simulate_events(up, t, cfg).on_count == 6
@@ -60,10 +63,10 @@ def naive_events(log_frames, t_us, c_on, c_off):
         steps = int((t_us[j] - t_us[j - 1]) * 20)
         for q in range(1, steps + 1):
             v = a + (b - a) * q / steps
-            while v - ref >= c_on:
+            while v - ref >= c_on - TOL:
                 ref += c_on
                 out.append((t_us[j - 1] + q / 20, 1))
-            while ref - v >= c_off:
+            while ref - v >= c_off - TOL:
                 ref -= c_off
                 out.append((t_us[j - 1] + q / 20, -1))
     return out
@@ -74,7 +77,7 @@ def naive_events(log_frames, t_us, c_on, c_off):
 def test_matches_brute_force_walk(levels, c_on, c_off):
     frames = np.array(levels)[:, None, None]
     t = np.arange(len(levels), dtype=np.int64) * 200
-    ev = simulate_events(frames, t, DVSConfig(pos_threshold=c_on, neg_threshold=c_off))
+    ev = simulate_events(frames, t, DVSConfig(pos_threshold=c_on, neg_threshold=c_off, reference="exact"))
     ref = naive_events(safe_log(np.array(levels)), t, c_on, c_off)
     assert len(ev) == len(ref) or min(  # a level landing exactly on a threshold may go either way
         abs((safe_log(np.array(levels))[-1] - safe_log(np.array(levels))[0]) % c) for c in (c_on, c_off)) < 1e-9
@@ -172,10 +175,20 @@ def test_torch_safe_log_matches_and_has_finite_gradients():
     (np.ones((3, 2, 2, 4)), [0, 1, 2], "shape"),
     (np.ones((3, 2, 2), np.uint8), [0, 1, 2], "float"),
     (np.ones((3, 2, 2)), [0.0, 1.0, 2.0], "integer"),
+    (np.ones((3, 2, 2)), np.array([0, 20, 10], np.uint64), "increasing"),  # np.diff would wrap around
+    (np.ones((3, 2, 2)), np.array([5, 5, 6], np.uint64), "increasing"),
 ])
 def test_bad_input_is_a_clear_error(frames, t, match):
     with pytest.raises(InputError, match=match):
         simulate_events(frames, np.asarray(t))
+
+
+def test_float16_frames_are_upcast_not_a_crash():
+    frames, t = ramp(1.1, 3)
+    ev16 = simulate_events(frames.astype(np.float16), t, EXACT)
+    ev32 = simulate_events(frames.astype(np.float16).astype(np.float32), t, EXACT)
+    assert len(ev16) == 5 and np.array_equal(ev16.t, ev32.t)
+    assert len(simulate_events(frames, t.astype(np.uint64), EXACT)) == 5
 
 
 def test_chunk_must_continue_in_time():
@@ -207,5 +220,8 @@ def test_restart_reinitialises_without_events_but_keeps_the_sensor():
     frames, _ = ramp(1.1, 2, shape=(3, 3))
     ev = sim.feed(frames * 6, np.array([400, 10_400]))
     assert len(ev) > 0 and ev.t.min() > 400
+    sim.restart()  # a fresh random phase: the same ramp gives different (but equally many on average) events
+    ev2 = sim.feed(frames * 6, np.array([10_500, 20_500]))
+    assert len(ev2) > 0 and not np.array_equal(ev2.t - 10_100, ev.t)
     with pytest.raises(InputError):
         sim.feed(np.ones((1, 3, 3)), np.array([10_000]))

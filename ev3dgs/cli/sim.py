@@ -19,7 +19,7 @@ def _events(args) -> int:
     check_output_file(args.out, make_parents=True)  # before simulating; schema.write checks the space it needs
     cfg = load_sim_config(args.config)
     frames, t_us = load_frames_npz(args.input)
-    ev = simulate_events(frames, t_us, cfg.dvs, seed=args.seed)
+    ev = simulate_events(frames, t_us, cfg.dvs, seed=args.seed, isp=cfg.isp)
     H, W = frames.shape[1:3]
     scene = schema.Scene(
         name=args.input.rsplit("/", 1)[-1].removesuffix(".npz"), source="ev3dgs-sim events",

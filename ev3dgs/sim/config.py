@@ -4,12 +4,15 @@
 [dvs]
 pos_threshold = 0.2          # log-intensity ON threshold
 neg_threshold = 0.2          # log-intensity OFF threshold
+log_knee = 1e-3              # lin-log knee, fraction of white (ev3dgs.logmap explains the default)
+reference = "random"         # or "exact": the reference at (re)start (see DVSConfig)
 [dvs.threshold_mismatch]     # frozen per-pixel thresholds ~ N(nominal, sigma)
 sigma = 0.03
 [dvs.refractory]
 period_us = 500
 [dvs.leak]                   # ON events from reference drift
 rate_hz = 0.1
+jitter_fraction = 0.1
 [dvs.shot_noise]             # random ON/OFF events, most frequent in the dark
 rate_hz = 1.0
 [dvs.lowpass]                # photoreceptor bandwidth, proportional to intensity
@@ -59,22 +62,28 @@ class Leak:
     """The reference drifts down, giving ON events at `rate_hz` per pixel on a static scene.
 
     Per-pixel rates are log-normal with `rate_spread_decades` standard deviation (in decades), normalised so
-    that their mean over pixels is `rate_hz`.
+    that their mean over pixels is `rate_hz`. `jitter_fraction` (v2e's leak_jitter_fraction) makes the drift
+    a Brownian motion with that drift: its standard deviation over one leak period is `jitter_fraction` of a
+    threshold, so a pixel's leak intervals have a coefficient of variation of about `jitter_fraction`,
+    whatever the frame rate (v2e's per-frame multiplicative jitter shrinks as sqrt(rate * dt)).
     """
 
     rate_hz: float = 0.1
     rate_spread_decades: float = 0.1
+    jitter_fraction: float = 0.1
 
     def __post_init__(self):
         check(self.rate_hz > 0, "dvs.leak.rate_hz must be > 0")
         check(0 <= self.rate_spread_decades <= 3, "dvs.leak.rate_spread_decades must be in [0, 3]")
+        check(0 <= self.jitter_fraction <= 1, "dvs.leak.jitter_fraction must be in [0, 1]")
 
 
 @dataclass(frozen=True)
 class ShotNoise:
     """Poisson noise events: `rate_hz` per pixel (ON+OFF together) at intensity 0, falling linearly to
     `white_fraction * rate_hz` at intensity 1 (and staying there for HDR values). Each event resets the
-    pixel, as a real noise-triggered reset does."""
+    pixel, as a real noise-triggered reset does. With threshold mismatch, a pixel's ON (OFF) rate is scaled
+    by nominal / its own ON (OFF) threshold, as in v2e: a low-threshold pixel is noisier."""
 
     rate_hz: float = 1.0
     white_fraction: float = 0.25
@@ -86,10 +95,11 @@ class ShotNoise:
 
 @dataclass(frozen=True)
 class LowPass:
-    """First-order photoreceptor filter; cutoff = cutoff_hz * (I + dark) / (1 + dark) at intensity I."""
+    """First-order photoreceptor filter; cutoff = cutoff_hz * (I + dark) / (1 + dark) at intensity I.
+    The dark default is v2e's (20 DN of 255), independent of the log knee."""
 
     cutoff_hz: float = 300.0
-    dark_intensity: float = DEFAULT_LOG_KNEE
+    dark_intensity: float = 20.0 / 255.0
 
     def __post_init__(self):
         check(self.cutoff_hz > 0, "dvs.lowpass.cutoff_hz must be > 0")
@@ -106,11 +116,27 @@ class ColorFilter:
         check(self.pattern in BAYER_PATTERNS, f"dvs.color_filter.pattern must be one of {BAYER_PATTERNS}")
 
 
+REFERENCE_MODES = ("random", "exact")
+
+
 @dataclass(frozen=True)
 class DVSConfig:
+    """The change detector and its effects.
+
+    reference: where each pixel's reference starts, at the first frame and after restart().
+      "random" (default): a real sensor has been running, so its reference sits at a uniformly random phase
+      within one threshold: a pixel whose first change is upward starts u * C_on below its signal, one whose
+      first change is downward (1 - u) * C_off above it, u ~ U[0, 1) per pixel (seeded). The first event in
+      either direction then comes at the next point of a threshold lattice with a random offset, so the
+      expected count over a monotonic change D is exactly D / C (with "exact" it is floor(D / C): 0.5 short
+      on average). A pixel's direction is fixed by its first non-zero change (or first noise event).
+      "exact": reference = the first frame's log intensity (ESIM and v2e do this); deterministic counts.
+    """
+
     pos_threshold: float = 0.2
     neg_threshold: float = 0.2
     log_knee: float = DEFAULT_LOG_KNEE
+    reference: str = "random"
     threshold_mismatch: ThresholdMismatch | None = None
     refractory: Refractory | None = None
     leak: Leak | None = None
@@ -122,6 +148,7 @@ class DVSConfig:
         check(0 < self.pos_threshold <= 10, "dvs.pos_threshold must be in (0, 10]")
         check(0 < self.neg_threshold <= 10, "dvs.neg_threshold must be in (0, 10]")
         check(0 < self.log_knee <= 1, "dvs.log_knee must be in (0, 1]")
+        check(self.reference in REFERENCE_MODES, f"dvs.reference must be one of {REFERENCE_MODES}")
 
     @property
     def effects(self) -> tuple[str, ...]:

@@ -2,7 +2,8 @@
 
 Pipeline per frame: intensity (luminance, or the CFA channel) -> safe log (ev3dgs.logmap) -> optional
 photoreceptor low-pass -> change detector (ev3dgs.sim.kernel) with optional mismatch, leak, shot noise and
-refractory period. The first frame ever fed only initialises the state (reference = its log intensity).
+refractory period. The first frame ever fed (and the first after restart()) only initialises the state:
+the reference starts at a random phase within one threshold (DVSConfig.reference).
 """
 from __future__ import annotations
 
@@ -15,14 +16,14 @@ import numpy as np
 
 from ..errors import InputError
 from ..events import Events
-from .config import DVSConfig
+from .config import DVSConfig, ISPConfig
 from .effects.color import ColorFilterArray, luminance
 from .effects.leak import LeakDrift
 from .effects.lowpass import PhotoreceptorLowPass
 from .effects.mismatch import draw_thresholds
 from .effects.shot_noise import ShotNoiseSampler
 from ..logmap import safe_log
-from .kernel import EMPTY_F8, EMPTY_I1, EMPTY_I8, NEVER, interval_events, sort_interval
+from .kernel import EMPTY_F8, EMPTY_I1, EMPTY_I8, NEVER, interval_events, sort_interval, start_references
 
 
 @dataclass
@@ -73,9 +74,12 @@ class DVSSimulator:
     """Stateful: feeding a sequence in chunks gives exactly the events of feeding it at once.
 
     The report's `kernel_load` entry is the one-off cost of loading the compiled kernels (first simulator
-    of a process only)."""
+    of a process only). `isp`: the camera's ISP, used only with a Bayer colour filter (each DVS pixel sees
+    the camera-raw channel that ISP's inverse gives; default ISPConfig()). Every random stream (reference
+    phase, mismatch, leak, noise) is a numpy Generator seeded from (seed, stream name): no thread dependence."""
 
-    def __init__(self, height: int, width: int, config: DVSConfig | None = None, seed: int = 0):
+    def __init__(self, height: int, width: int, config: DVSConfig | None = None, seed: int = 0,
+                 isp: ISPConfig | None = None):
         load_s = _warm_kernels()
         if height <= 0 or width <= 0 or height > 65535 or width > 65535:
             raise InputError(f"impossible sensor size {width}x{height}")
@@ -95,13 +99,14 @@ class DVSSimulator:
                                                     cfg.neg_threshold, P, _effect_rng(seed, "mismatch"))
             self._tick("threshold_mismatch", t)
         self.c_min = float(min(self.c_on.min(), self.c_off.min()))
-        self.cfa = ColorFilterArray(cfg.color_filter.pattern, height, width) if cfg.color_filter else None
+        self.cfa = ColorFilterArray(cfg.color_filter.pattern, height, width, isp) if cfg.color_filter else None
         self.lowpass = PhotoreceptorLowPass(cfg.lowpass) if cfg.lowpass else None
         t = time.perf_counter()
-        self.leak = LeakDrift(cfg.leak, P, _effect_rng(seed, "leak")) if cfg.leak else None
+        self.leak = LeakDrift(cfg.leak, P, _effect_rng(seed, "leak"), self.c_on) if cfg.leak else None
         if self.leak:
             self._tick("leak", t)
-        self.noise = ShotNoiseSampler(cfg.shot_noise, _effect_rng(seed, "shot_noise")) if cfg.shot_noise else None
+        self.noise = (ShotNoiseSampler(cfg.shot_noise, _effect_rng(seed, "shot_noise"), self.c_on, self.c_off,
+                                       cfg.pos_threshold, cfg.neg_threshold) if cfg.shot_noise else None)
         self.refractory_us = float(cfg.refractory.period_us) if cfg.refractory else 0.0
         self.blocked_until = np.full(P, NEVER) if cfg.refractory else EMPTY_F8
         if cfg.refractory:
@@ -110,14 +115,18 @@ class DVSSimulator:
         self.t_prev: int | None = None
         self._restart = False
         self.ref = np.zeros(P)
+        self._ref_rng = _effect_rng(seed, "reference") if cfg.reference == "random" else None
+        self._phase = self._undecided = None
+        self._n_undecided = 0
         self.signal_prev = self.log_prev = self.intensity_prev = None
         self._scratch = np.empty(P, np.int64)
         self._buf = (np.empty(P, np.int64), np.empty(P, np.uint16), np.empty(P, np.uint16), np.empty(P, np.int8))
 
     def restart(self) -> None:
         """Forget the signal (the camera jumped, e.g. to the next view of a dataset): the next frame fed
-        initialises the reference again and emits nothing. The sensor itself (threshold pattern, leak
-        rates, noise streams) stays, and time must keep increasing."""
+        initialises the reference again (at a fresh random phase, unless reference = "exact") and emits
+        nothing. The sensor itself (threshold pattern, leak rates, noise streams) stays, and time must keep
+        increasing."""
         self.signal_prev = self.log_prev = self.intensity_prev = None
         if self.blocked_until.shape[0]:
             self.blocked_until[:] = NEVER
@@ -148,7 +157,7 @@ class DVSSimulator:
                 raise InputError("frames contain NaN or Inf")
             if lo < 0:
                 raise InputError("frames contain negative intensities")
-        if len(t_us) > 1 and (np.diff(t_us) <= 0).any():
+        if len(t_us) > 1 and (t_us[1:] <= t_us[:-1]).any():  # not np.diff: it wraps for unsigned ints
             raise InputError("t_us must be strictly increasing (no duplicate timestamps)")
         if self.t_prev is not None and len(t_us) and t_us[0] <= self.t_prev:
             raise InputError(f"t_us must continue after the last frame fed ({self.t_prev} us)")
@@ -156,7 +165,11 @@ class DVSSimulator:
     def feed(self, frames: np.ndarray, t_us: np.ndarray) -> Events:
         frames = np.asarray(frames)
         t_us = np.asarray(t_us)
+        if frames.dtype == np.float16:  # numba has no float16 kernels: compute in float32
+            frames = frames.astype(np.float32)
         self._check(frames, t_us)
+        if len(t_us) and (int(t_us.max()) >= 2**62 or int(t_us.min()) < -2**62):
+            raise InputError("t_us out of range (|t| must be below 2**62 us)")
         if self.cfa is not None and frames.ndim != 4:
             raise InputError("a Bayer colour filter needs colour frames of shape (T, H, W, 3)")
         parts = []
@@ -173,6 +186,10 @@ class DVSSimulator:
                 self.signal_prev = self.log_prev = log_i
                 self.intensity_prev = intensity
                 self.ref = log_i.astype(np.float64)  # the reference accumulates: keep it in float64
+                if self._ref_rng is not None:  # random phase, applied at each pixel's first move
+                    self._phase = self._ref_rng.random(self.ref.shape[0])
+                    self._undecided = np.arange(self.ref.shape[0], dtype=np.int64)
+                    self._n_undecided = self.ref.shape[0]
                 self.t_prev = t1
                 continue
             dt = float(t1 - self.t_prev)
@@ -183,12 +200,18 @@ class DVSSimulator:
                 t = self._tick("lowpass", t)
             drift = EMPTY_F8
             if self.leak is not None:
-                drift = self.leak.drift(dt, self.c_on)
+                drift = self.leak.drift(dt)
                 t = self._tick("leak", t)
             noise = (EMPTY_I8, EMPTY_F8, EMPTY_I1)
             if self.noise is not None:
                 noise = self.noise.sample(self.intensity_prev, intensity, dt)
                 t = self._tick("shot_noise", t)
+            if self._n_undecided:
+                # a pixel's direction: its signal change plus the leak's mean drift (not the jittered one)
+                mean_drift = self.leak.mean_drift(dt) if self.leak is not None else EMPTY_F8
+                self._n_undecided = start_references(self._undecided, self._n_undecided, self.signal_prev, signal,
+                                                     mean_drift, self.ref, self.c_on, self.c_off, self._phase,
+                                                     noise[0])
             n, self._buf = interval_events(
                 self.signal_prev, signal, self.ref, self.c_on, self.c_off, self.c_min, drift, self.blocked_until,
                 float(self.t_prev), dt, self.refractory_us, noise, self.width, self._buf, self._scratch)
@@ -201,11 +224,12 @@ class DVSSimulator:
         return Events.concatenate(parts)
 
 
-def simulate_events(frames, t_us, config: DVSConfig | None = None, seed: int = 0) -> SimulatedEvents:
+def simulate_events(frames, t_us, config: DVSConfig | None = None, seed: int = 0,
+                    isp: ISPConfig | None = None) -> SimulatedEvents:
     """Events from a whole sequence of linear intensity frames (T, H, W) or (T, H, W, 3) at t_us (T,)."""
     frames = np.asarray(frames)
     if frames.ndim not in (3, 4):
         raise InputError(f"frames must have shape (T, H, W) or (T, H, W, 3), got {frames.shape}")
-    sim = DVSSimulator(frames.shape[1], frames.shape[2], config, seed)
+    sim = DVSSimulator(frames.shape[1], frames.shape[2], config, seed, isp)
     ev = sim.feed(frames, t_us)
     return SimulatedEvents(ev.t, ev.x, ev.y, ev.p, report=sim.report)

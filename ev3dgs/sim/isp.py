@@ -1,7 +1,12 @@
 """A minimal camera ISP: sRGB <-> camera raw (linear, white-balance-free, optionally Bayer mosaiced).
 
 Raw is float64 with 1.0 = sensor saturation. The forward path is the usual one:
-clip (saturation) -> demosaic (OpenCV) -> white balance gains -> highlight clip -> colour matrix -> clip -> sRGB encoding -> uint8.
+clip at saturation (1.0) -> demosaic (OpenCV) -> white balance gains -> highlight clip -> colour matrix ->
+clip to [0, 1] -> sRGB encoding -> uint8.
+Raw values below 0 (read noise around black) are kept through demosaic, white balance and colour matrix and
+clipped only at the output: clipping them at the raw stage kept only the positive half of the noise, which
+then went through different channel gains and tinted every shadow (a 0.002 grey at ISO 3200 came out
+(19.6, 12.0, 17.3), magenta, instead of ~7). The demosaic carries raw in [-RAW_PEDESTAL, 1].
 `inverse_isp` undoes it exactly (up to the final uint8 rounding) for in-gamut colours.
 """
 from __future__ import annotations
@@ -23,6 +28,7 @@ BAYER_TO_RGB = {
     "GRBG": cv2.COLOR_BayerGB2RGB,
     "GBRG": cv2.COLOR_BayerGR2RGB,
 }
+RAW_PEDESTAL = 0.25  # demosaic range below black (read noise); values under -RAW_PEDESTAL are clipped
 _PAD = 2  # even reflect-101 padding keeps the CFA phase and gives the demosaic a full neighbourhood at borders
 
 
@@ -85,11 +91,14 @@ def inverse_isp(image: np.ndarray, cfg: ISPConfig | None = None) -> np.ndarray:
 
 
 def demosaic(raw: np.ndarray, pattern: str) -> np.ndarray:
-    """(H, W) float mosaic in [0, 1] -> (H, W, 3) float64 camera RGB, bilinear (OpenCV) at 16-bit precision."""
-    u16 = np.round(np.clip(raw, 0.0, 1.0) * 65535.0).astype(np.uint16)
+    """(H, W) float mosaic in [-RAW_PEDESTAL, 1] (clipped there) -> (H, W, 3) float64 camera RGB, bilinear
+    (OpenCV) at 16-bit precision. OpenCV demosaics unsigned integers only, so the raw is shifted up by a
+    pedestal first and down after: bilinear interpolation (weights summing to 1) commutes with the shift."""
+    span = 1.0 + RAW_PEDESTAL
+    u16 = np.round((np.clip(raw, -RAW_PEDESTAL, 1.0) + RAW_PEDESTAL) * (65535.0 / span)).astype(np.uint16)
     padded = np.pad(u16, _PAD, mode="reflect")
     rgb = cv2.cvtColor(padded, BAYER_TO_RGB[pattern])[_PAD:-_PAD, _PAD:-_PAD]
-    return rgb.astype(np.float64) / 65535.0
+    return rgb.astype(np.float64) * (span / 65535.0) - RAW_PEDESTAL
 
 
 def forward_isp(raw: np.ndarray, cfg: ISPConfig | None = None) -> np.ndarray:
@@ -103,7 +112,7 @@ def forward_isp(raw: np.ndarray, cfg: ISPConfig | None = None) -> np.ndarray:
     if not np.issubdtype(r.dtype, np.floating) or not np.all(np.isfinite(r)):
         raise InputError("raw must be finite floats")
     _check_mosaic_size(cfg, r.shape[0], r.shape[1])
-    r = np.clip(r.astype(np.float64), 0.0, 1.0)  # sensor saturation
+    r = np.minimum(r.astype(np.float64), 1.0)  # sensor saturation; below-black noise is kept (clipped at output)
     cam = demosaic(r, cfg.mosaic) if cfg.mosaic != "none" else r
     h, w = cam.shape[:2]
     ccm, _ = _matrices(cfg)

@@ -13,6 +13,12 @@ in reset for `refractory_us`; while held, ref follows the input, so the change t
 refractory period is lost, and at release ref = L(release). Events (signal or noise) cannot occur while held.
 This differs from v2e (the blocked change is kept and fires later) and ESIM (drop the event, but the
 reference still advances by a threshold).
+
+Exact thresholds: a change that lands on a threshold to within TOL (1e-6 log units) fires, in the screen and
+in the crossing count alike. Without it, floating-point error in d = L - ref lost the last event of a pixel
+that rose and came back exactly (14-19% of such pixels) and a log step of exactly 5 thresholds gave 4 events.
+1e-6 covers the rounding of float32 logs (ulp/2 <= 5e-7 for |log I| < 8); v2e rounds its logs to 1e-8 for
+the same reason. An event found only thanks to TOL is stamped at the interval end (its time is clamped to 1).
 """
 from __future__ import annotations
 
@@ -23,6 +29,7 @@ EMPTY_F8 = np.zeros(0, np.float64)
 EMPTY_I8 = np.zeros(0, np.int64)
 EMPTY_I1 = np.zeros(0, np.int8)
 NEVER = -1e300  # blocked_until of a pixel that was never blocked
+TOL = 1e-6      # a change within TOL of a threshold crosses it (log units)
 
 
 @njit(cache=True, nogil=True)
@@ -50,6 +57,7 @@ def crossings(
     has_refr = refractory_us > 0.0
     n_noise = noise_pix.shape[0]
     inv_dt = 1.0 / dt
+    dt_int = np.int64(np.floor(dt + 0.5))
     inv_width = 1.0 / width
     refr_s = refractory_us * inv_dt
     cap = out_t.shape[0]
@@ -88,25 +96,34 @@ def crossings(
             up = d_end > 0.0                 # selects, not branches: ON/OFF is a coin flip per pixel
             step = cp if up else -cn
             pol = 1 if up else -1
-            m = np.int64(np.floor(d_end / step))
+            m = np.int64(np.floor((d_end + pol * TOL) / step))
             inv_g = 1.0 / g if g != 0.0 else 0.0
+            n0 = n
             for j in range(1, m + 1):
                 out_t[n] = np.int64(np.floor((j * step - d) * inv_g * dt + 0.5))
                 out_x[n] = col
                 out_y[n] = row
                 out_p[n] = pol
                 n += 1
+            if m > 0:  # only the last event can lie past the end (by TOL / g) and the first before the
+                # start (never, barring rounding); clamping there keeps the loop as fast as before
+                out_t[n - 1] = min(out_t[n - 1], dt_int)
+                out_t[n0] = max(out_t[n0], 0)
             ref[i] = b - (d_end - m * step)
             continue
         held = False
         while True:
             # time of the next threshold crossing of d from (s, d) with slope g
+            # (an event within TOL of the threshold at the interval end fires there)
+            sc = 2.0
             if g > 0.0:
-                sc = s + (cp - d) / g if d < cp else s
+                need = cp - d
+                if need - TOL <= g * (1.0 - s):
+                    sc = min(s + need / g, 1.0) if need > 0.0 else s
             elif g < 0.0:
-                sc = s + (-cn - d) / g if d > -cn else s
-            else:
-                sc = 2.0
+                need = -cn - d
+                if need + TOL >= g * (1.0 - s):
+                    sc = min(s + need / g, 1.0) if need < 0.0 else s
             sn = noise_s[k] if k < k_end else 2.0
             if sc > 1.0 and sn > 1.0:
                 break
@@ -194,7 +211,7 @@ def screen(L1, ref, c_on, c_off, blocked_until, t0, noise_pix, cand):
     next_noisy = noise_pix[0] if n_noise > 0 else -1
     for i in range(L1.shape[0]):
         d = L1[i] - ref[i]
-        hit = (d >= c_on[i]) | (d <= -c_off[i])
+        hit = (d >= c_on[i] - TOL) | (d <= TOL - c_off[i])
         if has_refr:
             hit |= blocked_until[i] > t0
         if i == next_noisy:  # rare: noise events are sparse
@@ -205,6 +222,34 @@ def screen(L1, ref, c_on, c_off, blocked_until, t0, noise_pix, cand):
         cand[nc] = i
         nc += hit
     return nc
+
+
+@njit(cache=True, nogil=True)
+def start_references(undecided, n_und, L0, L1, drift, ref, c_on, c_off, phase, noise_pix):
+    """Random-phase start (DVSConfig.reference = "random"): for each still undecided pixel (undecided[:n_und],
+    ascending; its ref equals L0) that moves in this interval, put its reference u * C_on below L0 if the
+    move is up, (1 - u) * C_off above if down (u = phase). Pixels with a noise event keep ref = L0 (the
+    noise resets them anyway). Compacts the pixels that stay undecided (no move, no noise) to the front of
+    `undecided` and returns their count."""
+    has_drift = drift.shape[0] > 0
+    n_noise = noise_pix.shape[0]
+    kn = 0
+    keep = 0
+    for j in range(n_und):
+        i = undecided[j]
+        while kn < n_noise and noise_pix[kn] < i:
+            kn += 1
+        g = L1[i] - L0[i] + (drift[i] if has_drift else 0.0)
+        if kn < n_noise and noise_pix[kn] == i:
+            continue
+        if g > 0.0:
+            ref[i] = L0[i] - phase[i] * c_on[i]
+        elif g < 0.0:
+            ref[i] = L0[i] + (1.0 - phase[i]) * c_off[i]
+        else:
+            undecided[keep] = i
+            keep += 1
+    return keep
 
 
 def interval_events(L0, L1, ref, c_on, c_off, c_min, drift, blocked_until, t0, dt, refractory_us, noise,

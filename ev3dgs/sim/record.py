@@ -164,7 +164,7 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
     # events: one continuous stream over every rendered frame
     t0 = time.perf_counter()
     t_abs = EPOCH_US + t_rel
-    sim = DVSSimulator(H, W, spec.sensor.dvs, seed=seed)
+    sim = DVSSimulator(H, W, spec.sensor.dvs, seed=seed, isp=spec.sensor.isp)
     parts, i = [], 0
     for k in keys:
         frames = results[k]["frames"]
