@@ -3,29 +3,75 @@ from __future__ import annotations
 
 import sys
 
-from .common import dispatch, parser, subparsers
+from .common import dispatch, finite_float, parser, subparsers
+
+
+def _need_backend(backend: str) -> None:
+    """--backend cuda needs the optional gsplat: say so now, not after loading the data."""
+    if backend == "cuda":
+        import importlib.util
+
+        if importlib.util.find_spec("gsplat") is None:
+            from ..errors import Ev3dgsError
+
+            raise Ev3dgsError("--backend cuda needs gsplat, which is not installed: pip install ev3dgs[cuda]")
+
+
+def _check_train(args) -> None:
+    """Before loading anything: the run folder can take model.pt and checkpoints, and the backend exists."""
+    from ..outputs import check_output_dir, remove_stale_temps
+
+    _need_backend(args.backend)
+    per_gaussian = 4 * (3 + 4 + 3 + 1 + 3 * (args.sh_degree + 1) ** 2)  # float32 parameters
+    # ckpt.pt (parameters + 2 Adam moments), its temporary while it replaces the old one, model.pt
+    check_output_dir(args.out, 7 * per_gaussian * max(1, args.init_points))
+    for name in ("ckpt.pt", "model.pt", "config.json"):
+        remove_stale_temps(args.out, name)
+
+
+_UNSET = object()
+
+
+def _record_given(sub) -> None:
+    """Make sub-parser `sub` note which options the command line gave (``args.given_options``, a set of
+    dests): a resumed run must tell "not given" from "given, equal to the default"."""
+    import argparse
+
+    parse = sub.parse_known_args
+
+    def parse_known_args(args=None, namespace=None):
+        opts = [a for a in sub._actions if a.option_strings and a.default is not argparse.SUPPRESS]
+        namespace = argparse.Namespace() if namespace is None else namespace
+        for a in opts:
+            if not hasattr(namespace, a.dest):
+                setattr(namespace, a.dest, _UNSET)
+        ns, rest = parse(args, namespace)
+        ns.given_options = {a.dest for a in opts if getattr(ns, a.dest) is not _UNSET}
+        for a in opts:
+            if getattr(ns, a.dest) is _UNSET:
+                setattr(ns, a.dest, sub._get_value(a, a.default) if isinstance(a.default, str) and a.type
+                        else a.default)
+        return ns, rest
+
+    sub.parse_known_args = parse_known_args
 
 
 def _train(args) -> int:
-    from ..train.config import TrainConfig
+    _check_train(args)
+    from ..train.config import TrainConfig, resume_config
     from ..train.trainer import Trainer
 
-    cfg = TrainConfig(
+    opts = dict(
         scene=args.scene, iterations=args.iterations, subposes=args.subposes, event_weight=args.event_weight,
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, learn_thresholds=args.learn_thresholds, sh_degree=args.sh_degree,
         init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
         device=args.device, threads=args.threads, backend=args.backend)
-    if args.resume:
-        from pathlib import Path
-
-        saved = Path(args.out) / "config.json"
-        if saved.exists():
-            cfg = TrainConfig.load(saved)
-            if args.iterations != cfg.iterations:  # allow extending a finished run
-                from dataclasses import replace
-
-                cfg = replace(cfg, iterations=args.iterations)
+    if args.resume:  # the run's saved settings, with only what the command line gave on top (checked there)
+        given = {"scene"} | {{"no_event_loss": "event_loss"}.get(d, d) for d in getattr(args, "given_options", opts)}
+        cfg = resume_config(args.out, opts, given)
+    else:
+        cfg = TrainConfig(**opts)
     trainer = Trainer(cfg, args.out, quiet=args.quiet)
     rec = trainer.fit(resume=args.resume)
     if not args.quiet:
@@ -57,6 +103,14 @@ def _render(args) -> int:
 
     cfg, model = load_run(args.run)
     sc = schema.read(cfg.scene)
+    from ..outputs import check_output_dir, check_output_file
+
+    _need_backend(cfg.backend)
+    size = args.frames * sc.camera.width * sc.camera.height  # about 1 byte a pixel as PNG, less as mp4
+    if str(args.out).lower().endswith(".mp4"):
+        check_output_file(args.out, size // 10, make_parents=True)
+    else:
+        check_output_dir(args.out, size)
     poses = orbit_path(np.asarray(sc.train.sharp_poses if sc.train.sharp_poses is not None
                                   else sc.train.poses[:, sc.train.poses.shape[1] // 2]), args.frames)
     K = torch.as_tensor(sc.camera.K, dtype=model.dtype)
@@ -71,7 +125,10 @@ def _export(args) -> int:
     from ..train.evaluate import load_run
     from ..train.export import save_ply
 
+    from ..outputs import check_output_file
+
     _, model = load_run(args.run)
+    check_output_file(args.ply, 4 * 62 * len(model), make_parents=True, option="--ply")
     save_ply(model, args.ply)
     print(f"{len(model)} Gaussians -> {args.ply}")
     return 0
@@ -87,7 +144,8 @@ def _info(args) -> int:
 def _validate(args) -> int:
     from .. import schema
 
-    schema.validate(args.file, require_complete=not args.partial)
+    for note in schema.validate(args.file, require_complete=not args.partial, warn=False):
+        print(f"warning: {note}", file=sys.stderr)
     print(f"{args.file}: valid")
     return 0
 
@@ -96,47 +154,68 @@ def build_parser():
     p = parser("ev3dgs", "Event-enhanced 3D Gaussian Splatting: train, evaluate, render, export.")
     sub = subparsers(p)
     t = sub.add_parser("train", help="train a 3DGS model on a scene file (blur + event rendering losses)")
-    t.add_argument("scene", help="scene .h5 with /train/poses")
-    t.add_argument("--out", required=True, help="run folder")
-    t.add_argument("--iterations", type=int, default=3000)
-    t.add_argument("--subposes", type=int, default=5, help="renders across each exposure (b+1, default 5)")
-    t.add_argument("--event-weight", type=float, default=1 / 625, help="omega (default 1/625)")
-    t.add_argument("--event-pairs", type=int, default=0, help="random pairs per step (0 = all pairs)")
-    t.add_argument("--naive", action="store_true", help="ablation: plain 3DGS on the blurry frame at the mid pose")
-    t.add_argument("--no-event-loss", action="store_true", help="ablation: blur loss only")
-    t.add_argument("--blur-space", choices=("srgb", "linear"), default="srgb")
-    t.add_argument("--learn-thresholds", action="store_true")
-    t.add_argument("--sh-degree", type=int, default=3)
-    t.add_argument("--init-points", type=int, default=20000)
-    t.add_argument("--checkpoint-every", type=int, default=500)
+    t.add_argument("scene", help="scene file (.h5) with /train/poses")
+    t.add_argument("--out", required=True, help="run folder (created if missing; model.pt, ckpt.pt, log.jsonl, "
+                                                "config.json, training.png go there)")
+    t.add_argument("--iterations", type=int, default=3000, help="optimisation steps (default %(default)s)")
+    t.add_argument("--subposes", type=int, default=5, help="renders across each exposure, b+1 (default %(default)s)")
+    t.add_argument("--event-weight", type=finite_float, default=1 / 625,
+                   help="omega, the weight of the event loss (default 1/625 = %(default)s)")
+    t.add_argument("--event-pairs", type=int, default=0,
+                   help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs "
+                        "(default %(default)s)")
+    t.add_argument("--naive", action="store_true",
+                   help="ablation: plain 3DGS on the blurry frame at the mid pose (default: off)")
+    t.add_argument("--no-event-loss", action="store_true",
+                   help="ablation: blur loss only (default: off, the event loss is used)")
+    t.add_argument("--blur-space", choices=("srgb", "linear"), default="srgb",
+                   help="where the sub-pose renders are averaged into the blurry image: srgb values or linear "
+                        "intensity (default %(default)s)")
+    t.add_argument("--learn-thresholds", action="store_true",
+                   help="optimise the ON/OFF contrast thresholds (log intensity) with the model "
+                        "(default: off, the scene file's thresholds are kept fixed)")
+    t.add_argument("--sh-degree", type=int, default=3, help="spherical-harmonics degree of the colours, 0-3 "
+                                                           "(default %(default)s)")
+    t.add_argument("--init-points", type=int, default=20000,
+                   help="random initial Gaussians inside the scene bounds when the file has no /points "
+                        "(default %(default)s)")
+    t.add_argument("--checkpoint-every", type=int, default=500,
+                   help="write RUN/ckpt.pt every this many steps (default %(default)s)")
     t.add_argument("--resume", action="store_true", help="continue from RUN/ckpt.pt")
-    t.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
-    t.add_argument("--backend", choices=("auto", "reference", "cpu", "cuda"), default="auto")
-    t.add_argument("--threads", type=int)
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--quiet", action="store_true")
+    t.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                   help="torch device; auto = cuda when available (default %(default)s)")
+    t.add_argument("--backend", choices=("auto", "reference", "cpu", "cuda"), default="auto",
+                   help="rasterizer: reference (plain torch), cpu (numba), cuda (gsplat, needs ev3dgs[cuda]); "
+                        "auto = cuda for CUDA tensors when gsplat is installed, else cpu (default %(default)s)")
+    t.add_argument("--threads", type=int, help="CPU threads for torch (default: torch's choice, all cores)")
+    t.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    t.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
     t.set_defaults(func=_train)
+    _record_given(t)
     e = sub.add_parser("eval", help="PSNR/SSIM on sharp novel and deblurred training views -> metrics.json")
-    e.add_argument("run")
-    e.add_argument("--lpips-weights", help="LPIPS backbone weights (no downloads are possible here)")
-    e.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    e.add_argument("run", help="run folder written by `ev3dgs train`")
+    e.add_argument("--lpips-weights", help="LPIPS backbone weights file (default: none, LPIPS is skipped; "
+                                           "no downloads are possible here)")
+    e.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                   help="torch device; auto = cuda when available (default %(default)s)")
     e.set_defaults(func=_eval)
     r = sub.add_parser("render", help="render a smooth camera path to a folder of PNGs or an .mp4")
-    r.add_argument("run")
-    r.add_argument("--out", required=True)
-    r.add_argument("--frames", type=int, default=120)
-    r.add_argument("--fps", type=int, default=30)
+    r.add_argument("run", help="run folder written by `ev3dgs train`")
+    r.add_argument("--out", required=True, help="a folder for frame_NNNN.png, or a file ending in .mp4")
+    r.add_argument("--frames", type=int, default=120, help="frames along the orbit (default %(default)s)")
+    r.add_argument("--fps", type=int, default=30, help="frames per second of an .mp4 (default %(default)s)")
     r.set_defaults(func=_render)
     x = sub.add_parser("export", help="write the standard 3DGS .ply")
-    x.add_argument("run")
-    x.add_argument("--ply", required=True)
+    x.add_argument("run", help="run folder written by `ev3dgs train`")
+    x.add_argument("--ply", required=True, help="output .ply (graphdeco 3DGS layout, written atomically)")
     x.set_defaults(func=_export)
     i = sub.add_parser("info", help="summarise a scene file (.h5)")
-    i.add_argument("file")
+    i.add_argument("file", help="scene file (.h5)")
     i.set_defaults(func=_info)
     v = sub.add_parser("validate", help="check a scene file against the schema")
-    v.add_argument("file")
-    v.add_argument("--partial", action="store_true", help="accept an events-only file (no /train, no K)")
+    v.add_argument("file", help="scene file (.h5)")
+    v.add_argument("--partial", action="store_true",
+                   help="accept an events-only file, no /train and no K (default: off, a complete file is required)")
     v.set_defaults(func=_validate)
     return p
 

@@ -11,6 +11,12 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
 * backward: per tile, Gaussians in reverse depth order; T is recovered by dividing by (1 - alpha) >= 0.01,
   the colour behind each Gaussian is accumulated, and gradients go to a per-(tile, Gaussian) buffer that a
   serial pass sums per Gaussian. No atomics, and the result does not depend on the thread count.
+
+Determinism: forward and backward are bitwise the same for any numba thread count (tiles own disjoint
+pixels and disjoint per-pair gradient slots; the per-Gaussian sum is serial, in tile-list order). One side
+effect had to be contained: numba's "omp" threading layer shares the OpenMP runtime with torch, and
+launching its thread pool sets OpenMP's thread count, i.e. torch's intra-op thread count, to numba's. The
+kernels are therefore called through `_parallel`, which puts torch's thread count back.
 """
 from __future__ import annotations
 
@@ -228,6 +234,16 @@ def _reduce(ids, per_pair, n):
     return out
 
 
+def _parallel(kernel, *args) -> None:
+    """Run a parallel kernel without letting numba change torch's intra-op thread count (see above)."""
+    threads = torch.get_num_threads()
+    try:
+        kernel(*args)
+    finally:
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
+
+
 def _consts(dtype) -> np.ndarray:
     return np.array([0.5, 1.0, ALPHA_MAX, ALPHA_MIN, T_MIN], dtype)
 
@@ -254,8 +270,8 @@ class _RasterizeCPU(torch.autograd.Function):
         image = np.empty((height, width, col.shape[1]), col.dtype)
         t_final = np.empty((height, width), col.dtype)
         last = np.empty((height, width), np.int64)
-        _forward(m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, image, t_final, last,
-                 _consts(col.dtype))
+        _parallel(_forward, m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, image, t_final, last,
+                  _consts(col.dtype))
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
         ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, t_final, last)
         ctx.size = (width, height, tiles_x)
@@ -271,8 +287,8 @@ class _RasterizeCPU(torch.autograd.Function):
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
         per_pair = np.zeros((len(ids), 6 + col.shape[1]), col.dtype)
-        _backward(m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, t_final, last, gi, ga, per_pair,
-                  _consts(col.dtype))
+        _parallel(_backward, m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, t_final, last, gi, ga,
+                  per_pair, _consts(col.dtype))
         g = torch.from_numpy(_reduce(ids, per_pair, len(m)))
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None

@@ -2,7 +2,11 @@
 `pip install ev3dgs[cuda]`). gsplat puts pixel centres at +0.5, we put them at integer coordinates, so
 the principal point is shifted by half a pixel on the way in. Its radius rule (3.33 sigma) differs from
 ours (the exact, opacity-aware 1/255 bound), which changes nothing visible: every pixel it drops has
-alpha < 1/255 in both. A parity test against `reference` runs whenever CUDA is available."""
+alpha < 1/255 in both. A parity test against `reference` runs whenever CUDA is available.
+
+Not bitwise reproducible: gsplat's backward sums each Gaussian's gradient over pixels with float atomicAdd,
+whose order changes from run to run, so two CUDA runs with the same seed agree closely but not bit for bit
+(the CPU backends, `reference` and `cpu`, are bitwise reproducible for any thread count)."""
 from __future__ import annotations
 
 import torch

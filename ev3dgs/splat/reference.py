@@ -20,6 +20,9 @@ non-increasing (also in floating point), so ``include = T_after >= 1e-4`` is exa
 reproduces "stop at the first next_T < 1e-4, nothing later counts". weights = alpha * T_before * include;
 T_final = T_after of the last included Gaussian (1 if none). All masks are piecewise constant, so autograd
 gives the exact gradient of this piecewise-smooth function. Works in the input dtype (float64 supported).
+
+Determinism: no BLAS product and no scatter with repeated indices, so forward and backward are bitwise
+reproducible for any torch thread count (tests/test_reliability_training.py).
 """
 from __future__ import annotations
 
@@ -112,7 +115,10 @@ def _composite(x0, x1, y0, y1, m, con, col, op, background):
     wgt = torch.where(include, alpha * T_before, torch.zeros_like(alpha))
     n_inc = include.sum(-1, keepdim=True)
     T_final = T_all.gather(-1, n_inc)  # (P, 1)
-    C = wgt @ col  # (P, D)
+    # not `wgt @ col`: its backward (col's gradient, a sum over the P pixels) goes through BLAS, whose
+    # split of that sum depends on the torch thread count; one channel at a time, element-wise products
+    # and a plain sum give bitwise the same result for any thread count
+    C = torch.stack([(wgt * col[None, :, d]).sum(-1) for d in range(col.shape[1])], dim=-1)  # (P, D)
     return torch.cat([C + T_final * background[None, :], 1.0 - T_final], dim=-1).reshape(h, w, -1)
 
 

@@ -125,12 +125,17 @@ class DefaultStrategy:
         if radii.shape[-1] == 2 and radii.dim() >= 2 and radii.numel() == 2 * n * g.shape[0]:
             radii = radii.max(dim=-1).values  # gsplat >= 1.5 per-axis radii
         radii = radii.reshape(-1, n).to(state["grad2d"])
-        sel = radii > 0
-        gs_ids = torch.where(sel)[1]
-        state["grad2d"].index_add_(0, gs_ids, g[sel].norm(dim=-1))
-        state["count"].index_add_(0, gs_ids, torch.ones_like(gs_ids, dtype=state["count"].dtype))
-        r = radii[sel] / float(max(w, h))
-        state["max_radius2d"].scatter_reduce_(0, gs_ids, r, "amax", include_self=True)
+        # masked element-wise adds, one camera row at a time in a fixed order: no index_add_ / scatter
+        # (whose CPU kernels may accumulate in a thread-dependent order), so the sums are bitwise
+        # reproducible for any thread count
+        zero = state["grad2d"].new_zeros(())
+        norms = g.norm(dim=-1)
+        for c in range(radii.shape[0]):
+            sel = radii[c] > 0
+            state["grad2d"] += torch.where(sel, norms[c], zero)
+            state["count"] += sel.to(state["count"].dtype)
+            r = torch.where(sel, radii[c] / float(max(w, h)), zero)
+            torch.maximum(state["max_radius2d"], r, out=state["max_radius2d"])
 
     # --------------------------------------------------------------- main hook
     def step_post_backward(

@@ -1,13 +1,26 @@
 """Checkpoints hold everything a resumed run needs to continue exactly as an uninterrupted one: the model,
-every optimizer's state, the densification statistics and RNG, the step and the trainer's own RNG."""
+every optimizer's state, the densification statistics and RNG, the step and the trainer's own RNG; plus the
+settings and the scene that made them, so a resume with other settings is refused instead of silently mixing
+two runs. Written atomically (temporary file, then rename); read with ``weights_only=True`` (no pickled code).
+"""
 from __future__ import annotations
 
-import os
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 
-from ..errors import InputError
+from ..config import from_dict
+from ..errors import ConfigError, InputError
+from .config import TrainConfig, mismatch_error
+
+REQUIRED_KEYS = ("step", "model", "optimizers", "strategy_state", "strategy_rng", "rng", "view_queue",
+                 "thresholds", "threshold_opt")
+
+
+def scene_fingerprint(data) -> dict:
+    """What identifies the training data a checkpoint was made on (a different file at the same path too)."""
+    return {"name": data.name, "width": int(data.width), "height": int(data.height), "views": int(data.n_views)}
 
 
 def save_checkpoint(path: Path, trainer) -> None:
@@ -22,22 +35,64 @@ def save_checkpoint(path: Path, trainer) -> None:
         "view_queue": list(trainer.view_queue),
         "thresholds": {k: v.detach().clone() for k, v in trainer.thresholds.items()},
         "threshold_opt": None if trainer.threshold_opt is None else trainer.threshold_opt.state_dict(),
+        "config": asdict(trainer.cfg),
+        "scene": scene_fingerprint(trainer.data),
     }
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    from ..outputs import atomic_path
+
+    with atomic_path(path) as tmp:  # a kill mid-write never leaves half a checkpoint under the final name
+        torch.save(payload, tmp)
 
 
-def load_checkpoint(path: Path, trainer) -> None:
+def _one_line(e: BaseException, limit: int = 160) -> str:
+    text = (str(e).strip().splitlines() or [type(e).__name__])[0]
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def read_checkpoint(path: Path, device="cpu") -> dict:
+    """The checkpoint's payload; a file that is not one (text, truncated, another program's) is a one-line
+    InputError naming it, never a torch traceback."""
     try:
-        payload = torch.load(path, map_location=trainer.device, weights_only=False)
-    except (OSError, RuntimeError, EOFError) as e:
-        raise InputError(f"{path}: not a readable checkpoint ({e})") from None
-    trainer.model.load_state_dict(payload["model"])
-    trainer.model.to(device=trainer.device)
-    trainer.optimizers = trainer.model.make_optimizers(scene_scale=trainer.data.scene_scale)
-    for k, o in trainer.optimizers.items():
-        o.load_state_dict(payload["optimizers"][k])
+        payload = torch.load(path, map_location=device, weights_only=True)
+    except Exception as e:  # torch raises RuntimeError, UnpicklingError, EOFError, ValueError... by damage
+        raise InputError(f"{path}: not a readable checkpoint (truncated, or not written by ev3dgs train): "
+                         f"{_one_line(e)}") from None
+    missing = [k for k in REQUIRED_KEYS if not isinstance(payload, dict) or k not in payload]
+    if missing:
+        raise InputError(f"{path}: not an ev3dgs training checkpoint (no {missing[0]!r})")
+    return payload
+
+
+def check_compatible(path: Path, payload: dict, cfg: TrainConfig, data) -> None:
+    """Refuse to resume a checkpoint made with other settings or on other data: one ConfigError listing every
+    difference as ``key: saved X vs given Y``. Only TrainConfig.RESUMABLE_CHANGES may differ."""
+    diffs = []
+    if payload.get("config") is not None:
+        try:
+            saved = from_dict(TrainConfig, payload["config"])
+        except (ConfigError, TypeError) as e:
+            raise InputError(f"{path}: the checkpoint's settings are unreadable ({_one_line(e)})") from None
+        diffs += saved.differences(cfg)
+    if payload.get("scene") is not None:
+        now = scene_fingerprint(data)
+        diffs += [(f"scene {k}", v, now.get(k)) for k, v in payload["scene"].items() if now.get(k) != v]
+    if diffs:
+        raise mismatch_error(path, diffs)
+
+
+def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
+    """Restore the trainer's state from the checkpoint at ``path`` (after check_compatible)."""
+    if payload is None:
+        payload = read_checkpoint(path, trainer.device)
+    check_compatible(path, payload, trainer.cfg, trainer.data)
+    try:
+        trainer.model.load_state_dict(payload["model"])
+        trainer.model.to(device=trainer.device)
+        trainer.optimizers = trainer.model.make_optimizers(scene_scale=trainer.data.scene_scale)
+        for k, o in trainer.optimizers.items():
+            o.load_state_dict(payload["optimizers"][k])
+    except (KeyError, ValueError, TypeError, RuntimeError) as e:
+        raise InputError(f"{path}: the checkpoint's model or optimizer state is damaged ({_one_line(e)})") from None
     trainer.strategy_state = payload["strategy_state"]
     if payload["strategy_rng"] is not None:
         trainer.strategy._generator()

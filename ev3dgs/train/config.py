@@ -5,8 +5,12 @@ import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-from ..config import check
+from ..config import check, from_dict
 from ..errors import ConfigError
+
+# Options a resumed run may change: they do not change the trained model (extending the run, how often it is
+# saved, how many threads the rasterizer kernels use: results are bitwise the same for any thread count).
+RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
 
 
 @dataclass(frozen=True)
@@ -59,12 +63,55 @@ class TrainConfig:
 
     @staticmethod
     def load(path: Path) -> "TrainConfig":
+        """Read a run's config.json; a missing key, an unknown key or a value of the wrong type (e.g.
+        ``"iterations": "300"``) is a one-line ConfigError naming the file and the key."""
         try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
+            data = json.loads(Path(path).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
             raise ConfigError(f"{path}: cannot read the run's config ({e})") from None
-        known = {f.name for f in fields(TrainConfig)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"{path}: unknown config key {unknown[0]}")
-        return TrainConfig(**data)
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the run's config must be a JSON object, got {type(data).__name__}")
+        if "scene" not in data:
+            raise ConfigError(f"{path}: the run's config has no 'scene'")
+        try:
+            return from_dict(TrainConfig, data)
+        except ConfigError as e:
+            raise ConfigError(f"{path}: {e}") from None
+
+    def differences(self, other: "TrainConfig", ignore: tuple[str, ...] = RESUMABLE_CHANGES) -> list[tuple]:
+        """(key, self's value, other's value) for every field not in ``ignore`` that differs (scene paths are
+        compared resolved, so a relative and an absolute path to one file are the same scene)."""
+        out = []
+        for f in fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if f.name in ignore or a == b:
+                continue
+            if f.name == "scene" and Path(a).resolve() == Path(b).resolve():
+                continue
+            out.append((f.name, a, b))
+        return out
+
+
+def mismatch_error(path, diffs: list[tuple]) -> ConfigError:
+    """The one-line refusal of a resume whose settings differ from the saved run's."""
+    listed = "; ".join(f"{k}: saved {a!r} vs given {b!r}" for k, a, b in diffs)
+    return ConfigError(f"--resume: {path} was made with other settings ({listed}); only --iterations, "
+                       "--checkpoint-every and --threads may change when resuming")
+
+
+def resume_config(run_dir, opts: dict, given: set[str]) -> TrainConfig:
+    """Settings of a resumed run: the run's config.json with the options the user gave (``given``, field
+    names) from ``opts`` on top; options not given keep their saved values, whatever the CLI defaults. With a
+    checkpoint to resume, a given option that differs from the saved one (other than RESUMABLE_CHANGES) is a
+    ConfigError listing every difference. Without config.json: TrainConfig(**opts)."""
+    saved_path = Path(run_dir) / "config.json"
+    if not saved_path.exists():
+        return TrainConfig(**opts)
+    saved = TrainConfig.load(saved_path)
+    merged = {**asdict(saved), **{k: v for k, v in opts.items() if k in given}}
+    cfg = TrainConfig(**merged)
+    if (Path(run_dir) / "ckpt.pt").exists():
+        diffs = saved.differences(cfg)
+        if diffs:
+            raise mismatch_error(saved_path, diffs)
+    return cfg

@@ -143,7 +143,10 @@ def event_loss(log_l: torch.Tensor, targets: torch.Tensor, pairs: Sequence[tuple
     if len(pairs) == 0:
         return log_l.sum() * 0.0
     idx = torch.as_tensor([tuple(pr) for pr in pairs], dtype=torch.long, device=log_l.device)
-    delta = log_l[idx[:, 1]] - log_l[idx[:, 0]]
+    # index_select, not log_l[idx]: the backward of advanced indexing with repeated indices (every pose is in
+    # several pairs) is index_put_(accumulate=True), whose multi-threaded CPU kernel adds in a racy order;
+    # index_select's backward (index_add_) adds slice by slice in index order: bitwise reproducible
+    delta = log_l.index_select(0, idx[:, 1]) - log_l.index_select(0, idx[:, 0])
     tp = torch.as_tensor(theta_pos, dtype=delta.dtype, device=delta.device)
     tn = torch.as_tensor(theta_neg, dtype=delta.dtype, device=delta.device)
     theta = torch.where(delta > 0, tp, tn)

@@ -4,6 +4,18 @@
          + omega * MSE((log L_k2 - log L_k1) / theta, signed events between t_k1 and t_k2)
 
 (added, not subtracted as in the published Ev3DGS code; the binned events are never modified in place.)
+
+Reproducibility: on the CPU a run is bitwise reproducible for a given seed on a given machine, whatever the
+thread counts (``--threads``, torch's, NUMBA_NUM_THREADS, OMP_NUM_THREADS). Measured with torch 2.13 (see
+tests/test_reliability_training.py): torch's CPU kernels are NOT thread-count independent (element-wise
+pow/sigmoid switch between SIMD and scalar code at thread-chunk boundaries, full sums and means split their
+partial sums per thread, a matmul's gradient splits its inner sum per thread) and ``index_put_`` with
+repeated indices (the backward of ``x[idx]``) adds atomically in a racy order. So every training step runs
+under :func:`reproducible`: torch's intra-op thread count pinned to 1 and deterministic algorithms on. The
+heavy work on the ``cpu`` backend is the numba rasterizer, which stays parallel (``--threads``): its tiles
+write disjoint pixels and per-(tile, Gaussian) gradient slots that one serial pass sums in a fixed order, so
+its results do not depend on its thread count either. With CUDA (gsplat) the backward adds gradients with
+float atomics: GPU runs are NOT bitwise reproducible (close, not equal).
 """
 from __future__ import annotations
 
@@ -11,16 +23,17 @@ import json
 import math
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..errors import Ev3dgsError
+from ..errors import ConfigError, Ev3dgsError
 from ..splat.model import GaussianModel
 from ..splat.rasterize import rasterization
 from ..splat.strategy import DefaultStrategy
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .data import TrainData, load_train_data
 from .events import pair_list, pair_targets
@@ -30,6 +43,25 @@ from .metrics import psnr
 
 class TrainingError(Ev3dgsError):
     """Training cannot go on (a non-finite loss or gradient); the last good checkpoint is kept."""
+
+
+@contextmanager
+def reproducible(enabled: bool = True):
+    """Run torch CPU maths so that its results do not depend on the thread count or on thread timing:
+    intra-op threads pinned to 1 and ``torch.use_deterministic_algorithms(True)`` (warn-only), both restored
+    on exit. (Numba kernels are not affected: they are thread-count independent by construction.)"""
+    if not enabled:
+        yield
+        return
+    threads = torch.get_num_threads()
+    det, warn_only = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(det, warn_only=warn_only)
+        torch.set_num_threads(threads)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -103,6 +135,11 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict:
+        """One optimisation step (bitwise reproducible on the CPU, see :func:`reproducible`)."""
+        with reproducible(self.device.type == "cpu"):
+            return self._train_step()
+
+    def _train_step(self) -> dict:
         cfg, data = self.cfg, self.data
         self._set_lr()
         if self.step > 0 and self.step % cfg.sh_interval == 0:
@@ -157,18 +194,32 @@ class Trainer:
 
     # ------------------------------------------------------------------ the run
     def fit(self, resume: bool = False, on_step=None) -> dict:
+        """Train to cfg.iterations. ``resume``: continue from RUN/ckpt.pt (refused, one line, when it was made
+        with other settings; see checkpoint.check_compatible) and roll log.jsonl back to its step, so no
+        step is logged twice; a run killed before its first checkpoint restarts from step 0 (and says so).
+        Without ``resume`` the run folder's old ckpt.pt and log.jsonl are replaced."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
         ckpt = self.run_dir / "ckpt.pt"
+        log_path = self.run_dir / "log.jsonl"
         if resume:
-            if not ckpt.exists():
-                raise Ev3dgsError(f"--resume: no checkpoint in {self.run_dir}")
-            load_checkpoint(ckpt, self)
+            if ckpt.exists():
+                load_checkpoint(ckpt, self, read_checkpoint(ckpt, self.device))
+                if self.step > self.cfg.iterations:
+                    raise ConfigError(f"--resume: {ckpt} is at step {self.step}, past --iterations "
+                                      f"{self.cfg.iterations}")
+            elif (self.run_dir / "config.json").exists() or log_path.exists():
+                print(f"no checkpoint in {self.run_dir}: starting from step 0", file=sys.stderr)
+            else:
+                raise Ev3dgsError(f"--resume: no checkpoint in {self.run_dir} (no run was started there)")
+        else:
+            ckpt.unlink(missing_ok=True)  # the run it belonged to is being replaced
+        rollback_log(log_path, self.step)
         self.cfg.save(self.run_dir / "config.json")
         from tqdm import tqdm
 
         bar = tqdm(total=self.cfg.iterations, initial=self.step, disable=self.quiet or not sys.stderr.isatty(),
                    unit="it", dynamic_ncols=True)
-        log = open(self.run_dir / "log.jsonl", "a")
+        log = open(log_path, "a")
         t0 = time.perf_counter()
         rec = {}
         try:
@@ -193,14 +244,32 @@ class Trainer:
 
     def save_model(self) -> None:
         """model.pt (and config.json) in the run folder: what eval, render and export read."""
-        import os
-
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.cfg.save(self.run_dir / "config.json")
-        tmp = self.run_dir / f".model.pt.tmp-{os.getpid()}"
-        torch.save({"model": self.model.state_dict(),
-                    "thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()}}, tmp)
-        os.replace(tmp, self.run_dir / "model.pt")
+        from ..outputs import atomic_path
+
+        with atomic_path(self.run_dir / "model.pt") as tmp:  # on failure: temporary removed, OutputError
+            torch.save({"model": self.model.state_dict(),
+                        "thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()}}, tmp)
+
+
+def rollback_log(log_path: Path, step: int) -> None:
+    """Keep the log lines of steps 1..step (those the checkpoint has seen), atomically; a torn last line (a
+    run killed mid-write) goes too. step 0 empties the log."""
+    if not log_path.exists():
+        return
+    kept = []
+    for line in log_path.read_text(errors="replace").splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and isinstance(rec.get("step"), int) and rec["step"] <= step:
+            kept.append(line + "\n")
+    from ..outputs import atomic_path
+
+    with atomic_path(log_path) as tmp:
+        tmp.write_text("".join(kept))
 
 
 def plot_curves(log_path: Path, png: Path) -> None:
