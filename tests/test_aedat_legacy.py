@@ -22,7 +22,10 @@ AEDAT4_SAMPLE = Path(__file__).resolve().parents[2] / "shared/data/aedat/aestrea
 
 # ---------------------------------------------------------------- AEDAT 2.0 encoder (jAER DAVIS, big-endian)
 A2_HEADER = (b"#!AER-DAT2.0\r\n# This is a raw AE data file created by AEOutputStream\r\n"
-             b"# AEChip: eu.seebetter.ini.chips.davis.Davis346red\r\n#End Of ASCII Header\r\n")
+             b"# AEChip: eu.seebetter.ini.chips.davis.Davis346red\r\n"
+             b"#      <entry key=\"ImuAccelScale\" value=\"ImuAccelScaleG8\"/>\r\n"
+             b"#      <entry key=\"ImuGyroScale\" value=\"GyroFullScaleDegPerSec1000\"/>\r\n"
+             b"#End Of ASCII Header\r\n")
 
 
 def a2_dvs(x, y, p):
@@ -60,8 +63,9 @@ def build_aedat2(seed=0, roi=True):
         k = add((1 << 10) | code, 7)
         exp["trig"].append((t[0], kind, k))
     dvs_burst(150, big=True)                          # ~2.5e9 us: passes 2^32
-    # APS frame: ROI 4x3 at x 10..13, y 20..22 (or full sensor), reset reads then signal reads
-    xs, ys = (range(10, 14), range(20, 23)) if roi else (range(W), range(H))
+    # APS frame: ROI 4x3 at x 10..13, y 20..22 (or full sensor), reset reads then signal reads, in jAER's
+    # Davis346 readout order: from the first pixel address (W-1, H-1) to the last (0, 0)
+    xs, ys = (range(13, 9, -1), range(22, 19, -1)) if roi else (range(W - 1, -1, -1), range(H - 1, -1, -1))
     reset = {(x, y): int(rng.integers(300, 1024)) for y in ys for x in xs}
     signal = {(x, y): int(rng.integers(0, 700)) for y in ys for x in xs}
     signal[(xs[0], ys[0])] = 1023                     # signal above reset -> clipped to 0
@@ -77,8 +81,8 @@ def build_aedat2(seed=0, roi=True):
         eoe = t[0] if eoe is None else eoe
     img = np.zeros((len(ys), len(xs)), np.uint16)
     for (x, y) in reset:
-        img[H - 1 - y - (H - 1 - ys[-1]), x - xs[0]] = np.clip(reset[(x, y)] - signal[(x, y)], 0, 1023) << 6
-    exp["frames"].append(dict(fs=fs, soe=soe, eoe=eoe, fe=t[0], img=img, pos=(xs[0], H - 1 - ys[-1]), k=k))
+        img[max(ys) - y, x - min(xs)] = np.clip(reset[(x, y)] - signal[(x, y)], 0, 1023) << 6
+    exp["frames"].append(dict(fs=fs, soe=soe, eoe=eoe, fe=t[0], img=img, pos=(min(xs), H - 1 - max(ys)), k=k))
     for s in range(3):                                # IMU samples: 7 words, same timestamp
         raw = [int(v) for v in rng.integers(-30000, 30000, 7)]
         for kind, v in enumerate(raw):
@@ -92,7 +96,8 @@ def build_aedat2(seed=0, roi=True):
 
 def imu_expected(raw):
     r = np.array(raw, float)
-    return np.array([-r[0], r[1], r[2]]) / 4096, np.array(r[4:7]) / 65.5, r[3] / 340 + 35
+    # camera frame (x right, y down, z forward) = diag(-1, 1, -1) x the MPU's raw axes, both sensors
+    return np.array([-r[0], r[1], -r[2]]) / 4096, np.array([-r[4], r[5], -r[6]]) / 32.8, r[3] / 340 + 35
 
 
 def read_all(reader):
@@ -148,7 +153,8 @@ def test_aedat2_exact_values(a2):
     check_aedat2(got, exp)
     assert got["t"].max() > 2**32 and np.all(np.diff(got["t"]) >= 0)     # unwrapped past the uint32 wrap
     info = got["info"]
-    assert info["file_size"] == len(data) and info["special"] == 4 and info["imu_samples"] == 3
+    assert info["file_size"] == len(data) and info["triggers"] == 4 and info["imu_samples"] == 3
+    assert "special" not in info and all("packets" not in s for s in info["streams"])
     assert info["time_range"] == (int(got["t"].min()), int(got["t"].max()))
     assert [s.kind for s in Aedat2Reader(p).streams()] == ["events", "frames", "imu", "triggers"]
 

@@ -32,9 +32,12 @@ def describe(path: str) -> str:
         if part is not None:
             first = next(iter(vars(part).values()))
             lines.append(f"{label:8s} {len(first)}")
+    seen = set()
     for w in caught:
         if issubclass(w.category, SchemaWarning):
-            lines.append(f"warning  {w.message}")
+            if str(w.message) not in seen:          # each warning once
+                seen.add(str(w.message))
+                lines.append(f"warning  {w.message}")
         else:  # not ours to summarise: pass it on
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return "\n".join(lines)

@@ -28,21 +28,40 @@ def _output_file(out: str, estimated_bytes: int) -> None:
         remove_stale_temps(Path(out).parent, Path(out).name)
 
 
+def _sensor_size(text: str) -> tuple[int, int]:
+    """argparse type: WxH in pixels."""
+    import argparse
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH in pixels (e.g. 240x180), got {text!r}") from None
+    if not (0 < w <= 1023 and 0 < h <= 511):
+        raise argparse.ArgumentTypeError(f"sensor size {w}x{h} outside 1..1023 x 1..511 (the AEDAT address range)")
+    return w, h
+
+
 def _info(args) -> int:
+    import warnings
+    from pathlib import Path
+
     from ..io.recording import MAGIC
 
     _input_file(args.file)
     with open(args.file, "rb") as f:
         head = f.read(16)
-    if any(head.startswith(m) for m in MAGIC):
+    if any(head.startswith(m) for m in MAGIC) or not head or Path(args.file).suffix.lower().startswith(".aedat"):
         from ..io.recording import open_recording
 
-        with open_recording(args.file, strict=args.strict) as reader:
-            info = reader.info()
+        with warnings.catch_warnings():     # the reader lists its warnings; print each once, below
+            warnings.simplefilter("ignore")
+            with open_recording(args.file, strict=args.strict, sensor_size=args.sensor_size) as reader:
+                info = reader.info()
         print(f"{args.file}: {reader.format}")
         for key, value in (info.items() if isinstance(info, dict) else vars(info).items()):
-            print(f"  {key}: {value}")
-        for w in reader.warnings:
+            if key != "warnings":
+                print(f"  {key}: {value}")
+        for w in dict.fromkeys(reader.warnings):
             print(f"  warning: {w}")
     else:
         from .info import describe
@@ -63,9 +82,10 @@ def _davis(args) -> int:
                         events=args.events, event_margin_ms=args.event_margin_ms, subposes=args.subposes,
                         poses=not args.no_poses, calibration=args.calibration, frames_stream=args.frames_stream,
                         events_stream=args.events_stream, pos_threshold=args.pos_threshold,
-                        neg_threshold=args.neg_threshold, color_filter=args.color_filter, strict=args.strict)
+                        neg_threshold=args.neg_threshold, color_filter=args.color_filter, strict=args.strict,
+                        sensor_size=args.sensor_size)
     stats = ingest_davis(args.recording, args.out, opts)
-    for w in stats.warnings:
+    for w in dict.fromkeys(stats.warnings):
         print(f"warning: {w}", file=sys.stderr)
     if not args.quiet:
         reg = ("" if stats.registered is None else
@@ -93,8 +113,11 @@ def build_parser():
     i.add_argument("--strict", action="store_true",
                    help="fail (exit 2) on the first corrupt packet or value the recording contradicts (default: off: "
                         "drop it with a warning)")
+    i.add_argument("--sensor-size", type=_sensor_size, metavar="WxH",
+                   help="sensor size of an AEDAT 2.0/3.1 recording whose header names no camera, e.g. 240x180 "
+                        "(default: from the header; without one, inferred from the addresses with a warning)")
     i.set_defaults(func=_info)
-    d = sub.add_parser("davis", help="a DAVIS346 recording -> scene.h5 (EDI + pycolmap poses)")
+    d = sub.add_parser("davis", help="a DAVIS recording (DAVIS346/240, jAER or DV) -> scene.h5 (EDI + pycolmap poses)")
     d.add_argument("recording", help="DAVIS recording (.aedat4, .aedat3 or .aedat 2.0)")
     d.add_argument("--out", required=True, help="output scene file (.h5, written atomically)")
     d.add_argument("--calibration", help="DV/OpenCV camera-calibration XML, or TOML/JSON (fx fy cx cy ...) "
@@ -113,6 +136,9 @@ def build_parser():
     d.add_argument("--subposes", type=int, default=5, help="EDI latent frames / poses per view (default %(default)s)")
     d.add_argument("--no-poses", action="store_true",
                    help="skip EDI + pycolmap pose estimation (default: off, poses are estimated)")
+    d.add_argument("--sensor-size", type=_sensor_size, metavar="WxH",
+                   help="sensor size of an AEDAT 2.0/3.1 recording whose header names no camera, e.g. 240x180 "
+                        "(default: from the header; without one, inferred from the addresses with a warning)")
     d.add_argument("--frames-stream", help="AEDAT4 stream name of the APS frames (default: the first frame stream)")
     d.add_argument("--events-stream", help="AEDAT4 stream name of the events (default: the first event stream)")
     d.add_argument("--pos-threshold", type=finite_float, default=0.2,

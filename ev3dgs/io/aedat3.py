@@ -1,6 +1,7 @@
 """AEDAT 3.1 (cAER / libcaer) reader: polarity, frame, IMU6/IMU9 and special events.
 
-Layout (shared/reference/aedat-formats.md §2.2), little-endian: `#` header lines ending with `#!END-HEADER`, then
+Layout (docs.inivation.com, "AEDAT 3.1"; libcaer's include/libcaer/events/*.h on gitlab.com/inivation/dv/libcaer),
+little-endian: `#` header lines ending with `#!END-HEADER`, then
 packets of a 28-byte header (int16 eventType, int16 eventSource, int32 eventSize, eventTSOffset, eventTSOverflow,
 eventCapacity, eventNumber, eventValid) followed by eventCapacity x eventSize bytes, of which the first
 eventNumber events are decoded. Every event's 64-bit timestamp is (eventTSOverflow << 31) | ts32; events with
@@ -15,6 +16,13 @@ the valid bit (bit 0) clear are skipped. Origin is top-left (no flip).
   are triggers (timestamp reset, external inputs/generators, APS frame/exposure markers) come out as Triggers with
   AEDAT 4 TriggerType numbers; the rest (timestamp wrap, row-only, ...) are counted and excluded.
 
+IMU values are stored in g and deg/s by libcaer, already in its camera frame (y down: an upright camera at rest
+reads accel y ~ -1 g; x right as DV/jAER converters assume), which is the scene's (OpenCV) frame: no change.
+A TIMESTAMP_RESET special event (libcaer restarts the clock and the overflow counter) splits the file into
+segments with separate clocks: the longest is read, with a warning (strict=True: AedatError).
+Decoded polarity events are kept after the first pass (files up to CACHE_BYTES of polarity packets), and a
+per-packet time range makes events(start, end) skip packets outside the window on larger files.
+
 Checks (ev3dgs.io.checks): a packet whose eventTSOverflow goes back, or jumps by more than one and back, is
 dropped; events whose 32-bit timestamp has bit 31 set, or that go back in time within their stream, or lie
 outside the sensor are dropped; frames outside the sensor or with inverted times and IMU samples with
@@ -28,7 +36,7 @@ import struct
 import numpy as np
 
 from ..events import Events
-from .checks import MonotonicFilter, imu_plausible
+from .checks import MonotonicFilter, Wrap32, imu_plausible
 from .types import AedatError, FrameData, ImuData, RecordingReader, StreamInfo, Triggers
 
 MAGIC = b"#!AER-DAT3.1"
@@ -36,6 +44,7 @@ END = b"#!END-HEADER"
 MAX_HEADER = 16 << 20
 MAX_EVENT_SIZE = 64 << 20
 CHUNK_BYTES = 4 << 20
+CACHE_BYTES = 128 << 20
 HDR = struct.Struct("<hhiiiiii")
 SPECIAL, POLARITY, FRAME, IMU6, IMU9 = 0, 1, 2, 3, 4
 SIZES = {SPECIAL: 8, POLARITY: 8, IMU6: 36, IMU9: 48}
@@ -55,6 +64,8 @@ class Aedat3Reader(RecordingReader):
         self.strict = strict
         self.warnings: list[str] = []
         self._index = None
+        self._ev_cache: dict = {}                       # eventSource -> list of Events (whole stream)
+        self._ev_range: dict = {}                       # eventSource -> {packet offset: (t0, t1, last before)}
         self._open_with_header(self._read_header)
         self.sources = {int(m.group(1)): m.group(2).strip()
                         for m in re.finditer(r"^#Source (\d+): ?(.*)$", self.header, re.M)}
@@ -128,8 +139,46 @@ class Aedat3Reader(RecordingReader):
                 break
             out.append((pos, typ, src, size, ovf, cap, num))
             pos += HDR.size + payload
-        self._index = self._check_overflow(out)
+        self._index = self._check_overflow(self._split_resets(out))
         return self._index
+
+    def _edge_time(self, pk, last: bool) -> int:
+        """64-bit timestamp of the first (or last) event of a packet."""
+        pos, typ, src, size, ovf, cap, num = pk
+        if not num:
+            return -1 if last else 2**62
+        self._f.seek(pos + 8)                       # eventTSOffset
+        tso = struct.unpack("<i", self._f.read(4))[0]
+        self._f.seek(pos + HDR.size + (num - 1 if last else 0) * size + tso)
+        raw = self._f.read(4)
+        return (ovf << 31) | (struct.unpack("<I", raw)[0] & 0x7FFFFFFF) if len(raw) == 4 else -1
+
+    def _split_resets(self, index: list) -> list:
+        """TIMESTAMP_RESET special events restart the clock: keep the longest run of packets between resets."""
+        resets = []
+        for k, (pos, typ, src, size, ovf, cap, num) in enumerate(index):
+            if typ != SPECIAL or not num:
+                continue
+            self._f.seek(pos + HDR.size)
+            d = np.frombuffer(self._f.read(num * size), "<u4")
+            d = d[:len(d) - len(d) % 2].reshape(-1, 2)
+            if (((d[:, 0] & 1) == 1) & (((d[:, 0] >> 1) & 0x7F) == 1)).any() and 0 < k < len(index) - 1:
+                before, after = self._edge_time(index[k - 1], last=True), self._edge_time(index[k + 1], last=False)
+                if after < Wrap32.RESET_MAX and before > after + Wrap32.RESET_MIN_DROP:   # the clock did restart
+                    resets.append(k)
+        if not resets:
+            return index
+        bounds = [0] + resets + [len(index)]
+        segs = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        size = [sum(index[k][5] * index[k][3] for k in range(a, b)) for a, b in segs]
+        best = int(np.argmax(size))
+        where = ", ".join(f"byte {index[k][0]}" for k in resets)
+        msg = f"{len(resets)} TIMESTAMP_RESET event(s) in the packets at {where}: the clock restarts there"
+        if self.strict:
+            raise AedatError(f"{self.path}: {msg}")
+        a, b = segs[best]
+        self._warn(f"{msg}; reading only segment {best + 1} of {len(segs)} (packets {a}..{b - 1}, the largest)")
+        return index[a:b]
 
     def _problem(self, msg: str) -> None:
         if self.strict:
@@ -188,11 +237,14 @@ class Aedat3Reader(RecordingReader):
             return -1                                   # no such stream: nothing to read
         raise AedatError(f"{self.path}: no stream {stream!r} (streams: {[s.name for s in ss]})")
 
-    def _payloads(self, types, src):
-        """Yield (packet header tuple, bytes of whole events) in bounded chunks, for packets of `types`/`src`."""
+    def _payloads(self, types, src, ranges=None, window=None):
+        """Yield (packet header tuple, bytes of whole events) in bounded chunks, for packets of `types`/`src`
+        (ranges + window: only the packets whose time range overlaps the window)."""
         for pk in self._packets():
             pos, typ, s, size, ovf, cap, num = pk
             if typ not in types or s != src or num == 0:
+                continue
+            if window is not None and pos in ranges and (ranges[pos][1] < window[0] or ranges[pos][0] >= window[1]):
                 continue
             per = max(1, CHUNK_BYTES // size)
             for i in range(0, num, per):
@@ -206,10 +258,43 @@ class Aedat3Reader(RecordingReader):
     # ----- data -----
     def events(self, stream=None, start_us: int | None = None, end_us: int | None = None):
         src = self._select(stream, "events")
+        lo = -2**63 if start_us is None else start_us
+        hi = 2**63 - 1 if end_us is None else end_us
+        if src not in self._ev_range:                   # the first pass decodes (and checks) every packet
+            parts, size = [], 0
+            for ev in self._decode_events(src, None):
+                size += len(ev) * 13
+                if parts is not None:
+                    if size <= CACHE_BYTES:
+                        parts.append(ev)
+                    else:
+                        parts = None
+            if parts is not None:
+                self._ev_cache[src] = parts
+        if src in self._ev_cache:
+            todo = self._ev_cache[src]
+        else:
+            todo = self._decode_events(src, (lo, hi))
+        for ev in todo:
+            if not len(ev) or ev.t[-1] < lo or ev.t[0] >= hi:
+                continue
+            if start_us is not None or end_us is not None:
+                a, b = np.searchsorted(ev.t, lo), np.searchsorted(ev.t, hi)
+                ev = Events(ev.t[a:b], ev.x[a:b], ev.y[a:b], ev.p[a:b])
+            if len(ev):
+                yield ev
+
+    def _decode_events(self, src: int, window):
+        """Decode the polarity packets of one source (window=(lo, hi): only packets whose time range, known from
+        the first pass, overlaps it)."""
         w, h = self._size
         bad = 0
         mono = MonotonicFilter()
-        for (pos, _, _, _, ovf, _, _), buf in self._payloads((POLARITY,), src):
+        ranges = self._ev_range.setdefault(src, {}) if window is None else self._ev_range[src]
+        for (pos, _, _, _, ovf, _, _), buf in self._payloads((POLARITY,), src, ranges if window else None, window):
+            if window is not None:
+                mono.last = ranges[pos][2]
+            before = mono.last
             d = np.frombuffer(buf, "<u4").reshape(-1, 2)
             data = d[:, 0]
             t = (np.int64(ovf) << 31) | (d[:, 1] & 0x7FFFFFFF).astype(np.int64)
@@ -226,12 +311,13 @@ class Aedat3Reader(RecordingReader):
                 self._problem(f"byte {pos}: {int(neg.sum())} polarity events with a negative 32-bit timestamp dropped")
                 m &= ~neg
             m[m] = self._ordered(mono, t[m], pos, "polarity events")
-            if start_us is not None:
-                m &= t >= start_us
-            if end_us is not None:
-                m &= t < end_us
+            if window is None:
+                kept = t[m]
+                r0 = ranges.get(pos)
+                t0, t1 = (int(kept[0]), int(kept[-1])) if len(kept) else (2**63 - 1, -1)
+                ranges[pos] = (t0, t1, before) if r0 is None else (min(r0[0], t0), max(r0[1], t1), r0[2])
             if m.any():
-                yield Events(t[m], x[m], y[m], np.where(data[m] & 2, 1, -1))
+                yield Events(t[m], x[m], y[m], np.where(data[m] & 2, 1, -1).astype(np.int8))
         if bad:
             self._warn(f"{bad} polarity events with coordinates outside the {w}x{h} sensor ignored")
 

@@ -200,14 +200,19 @@ def imu_plausible(accel: np.ndarray, gyro: np.ndarray, temp: np.ndarray) -> np.n
 
 class Wrap32:
     """Unwraps 32-bit (or 31-bit) AEDAT 2.0 timestamps chunk by chunk, taking a backward jump as a wrap only
-    when it is plausible: the value before it lies near the 2^32 (or 2^31) boundary, the value after it near 0,
-    and the unwrapped step is under 2^30 us. A run of at most MAX_RUN (4096) records that jumps away (by more than
-    2^30) and comes back to where it left is an outlier run and is dropped (one bad timestamp of 0xFFFFFFFF
-    between 10 and 20 must not shift the rest of the file by 2^32). Implausible backward jumps are noted
-    and left for the monotonic check of each stream."""
+    when it is plausible: the value before it lies within WRAP_GAP (60 s) of the 2^32 (or 2^31) boundary and the
+    value after it within WRAP_GAP of 0, so the unwrapped step is under WRAP_GAP. A backward jump to a small value
+    (under RESET_MAX) that is not a wrap and does not come back is a timestamp reset (jAER restarts its clock at 0):
+    noted as ("reset", index, (before, after)) and the count restarts from the new value. A run of at most MAX_RUN
+    (4096) records that jumps away (by more than 2^30) and comes back to where it left is an outlier run and is
+    dropped (one bad timestamp of 0xFFFFFFFF between 10 and 20 must not shift the rest of the file by 2^32).
+    Other backward jumps are noted and left for the monotonic check of each stream."""
 
     JUMP = 1 << 30
     MAX_RUN = 4096
+    WRAP_GAP = 60_000_000
+    RESET_MAX = 1 << 24                      # ~16.8 s: a reset restarts the clock at 0
+    RESET_MIN_DROP = 1000                    # smaller steps back are jitter, not resets
 
     def __init__(self) -> None:
         self.prev: int | None = None         # raw value of the last kept record
@@ -228,7 +233,8 @@ class Wrap32:
         d = np.diff(ext, prepend=start)
         step = np.zeros(n, np.int64)
         resume = k0
-        for j in np.flatnonzero(np.abs(d[:n]) > self.JUMP).tolist():
+        cand = (np.abs(d[:n]) > self.JUMP) | ((d[:n] < -self.RESET_MIN_DROP) & (ext[:n] < self.RESET_MAX))
+        for j in np.flatnonzero(cand).tolist():
             if j < resume:
                 continue
             a = int(ext[j - 1]) if j else start
@@ -243,8 +249,11 @@ class Wrap32:
                 continue
             if d[j] < 0:
                 wrap = 1 << 32 if a >= 1 << 31 else 1 << 31
-                if 0 <= int(ext[j]) + wrap - a < self.JUMP:
+                if 0 <= int(ext[j]) + wrap - a < self.WRAP_GAP:
                     step[j] = wrap
+                elif int(ext[j]) < self.RESET_MAX:
+                    step[j] = -(self.offset + int(step[:j].sum()))   # the clock restarts: t = raw value again
+                    notes.append(("reset", j, (a, int(ext[j]))))
                 else:
                     notes.append(("backward", j, int(ext[j]) - a))
         t = u + self.offset + np.cumsum(step)

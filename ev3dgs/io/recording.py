@@ -14,15 +14,19 @@ def detect_format(path: str | Path) -> str:
         raise AedatError(f"{p}: no such file")
     with open(p, "rb") as f:
         head = f.read(16)
+    if not head:
+        raise AedatError(f"{p}: empty file (0 bytes): not a recording")
     for magic, name in MAGIC.items():
         if head.startswith(magic):
             return name
     raise AedatError(f"{p}: byte 0: not an AEDAT 2.0, 3.1 or 4.0 file (starts with {head[:12]!r})")
 
 
-def open_recording(path: str | Path, *, strict: bool = False) -> RecordingReader:
+def open_recording(path: str | Path, *, strict: bool = False,
+                   sensor_size: tuple[int, int] | None = None) -> RecordingReader:
     """The reader for the file's format. strict=False: corrupt packets and values the file contradicts are
-    dropped with a warning; strict=True: they raise AedatError naming the byte."""
+    dropped with a warning; strict=True: they raise AedatError naming the byte. sensor_size=(W, H): the sensor of
+    an AEDAT 2.0/3.1 file whose header does not name its camera (AEDAT 4 states it)."""
     fmt = detect_format(path)
     if fmt == "aedat4":
         from .aedat4 import Aedat4Reader
@@ -31,7 +35,7 @@ def open_recording(path: str | Path, *, strict: bool = False) -> RecordingReader
     if fmt == "aedat3.1":
         from .aedat3 import Aedat3Reader
 
-        return Aedat3Reader(path, strict=strict)
+        return Aedat3Reader(path, strict=strict, sensor_size=sensor_size)
     from .aedat2 import Aedat2Reader
 
-    return Aedat2Reader(path, strict=strict)
+    return Aedat2Reader(path, strict=strict, sensor_size=sensor_size)

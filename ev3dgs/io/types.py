@@ -49,11 +49,21 @@ class FrameData:
     image: np.ndarray              # (H, W) or (H, W, C) uint8 or uint16, file channel order (OpenCV: BGR/BGRA)
     position: tuple[int, int] = (0, 0)   # ROI offset (x, y) on the sensor
     source: str = ""
+    # per image row: [start, end) of its exposure (int64 us, shape (H, 2)); set by readers that see per-pixel reads
+    # (AEDAT 2.0 APS); on a rolling-shutter frame every row has its own window, exposure_start/end are the first
+    # row's (as jAER reports them)
+    row_exposure: np.ndarray | None = None
+
+    @property
+    def rolling_shutter(self) -> bool:
+        r = self.row_exposure
+        return r is not None and len(r) > 1 and bool((r[:, 0] != r[0, 0]).any())
 
 
 @dataclass
 class ImuData:
     t: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    # camera frame (OpenCV: x right, y down, z forward) for both sensors; see ev3dgs.io.jaer.IMU_AXES
     accel: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))       # g
     gyro: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))        # deg/s
     temperature: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))      # deg C
