@@ -198,3 +198,19 @@ def test_scene_without_poses_is_refused(scene_path, tmp_path, capsys):
     schema.write(sc, tmp_path / "noposes.h5")
     assert cli.main(["train", str(tmp_path / "noposes.h5"), "--out", str(tmp_path / "r")]) == 2
     assert "/train/poses is missing" in capsys.readouterr().err
+
+
+def test_bench_train_scaling_step_and_plot(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    from bench_train_scaling import plot, step_ms
+
+    ms = step_ms(300, 24, 18, threads=1, repeats=1)
+    assert 0 < ms < 60_000
+    rows = lambda key, xs: [{"width": 24, "height": 18, "pixels": x if key == "p" else 432,  # noqa: E731
+                             "gaussians": x if key == "g" else 300, "ms": float(x) ** 0.5} for x in xs]
+    plot({"threads": 1, "subposes": 5, "by_pixels": rows("p", [100, 400]), "by_gaussians": rows("g", [100, 1000]),
+          "slope_pixels": 0.5, "slope_gaussians": 0.5}, str(tmp_path / "s.png"))
+    assert (tmp_path / "s.png").stat().st_size > 0

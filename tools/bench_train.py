@@ -2,6 +2,12 @@
 naive, blur-only and blur+event on the --quick lego scene of `make demo`. JSON + PNG.
 
     python tools/bench_train.py [--scene demo_out/lego.h5] [--iterations 1500] [--eval-every 250]
+    python tools/bench_train.py --scaling [--threads 1] [--quick]
+
+--scaling: how the cost of one blur+event step grows with the data (synthetic, no scene file needed): ms per
+step (5 sub-poses, all 10 event pairs, SH degree 3, forward + backward + Adam, the trainer's step on the
+cpu backend) against the pixel count at 6k Gaussians and against the Gaussian count at 96x72, log-log,
+written to tools/results/bench_train_scaling.{json,png}.
 """
 from __future__ import annotations
 
@@ -26,7 +32,14 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--json", default="tools/results/bench_train.json")
     ap.add_argument("--plot", default="tools/results/bench_train.png")
+    ap.add_argument("--scaling", action="store_true", help="ms/step against pixels and Gaussians (synthetic)")
+    ap.add_argument("--quick", action="store_true", help="with --scaling: fewer, smaller points")
     args = ap.parse_args(argv)
+    if args.scaling:
+        from bench_train_scaling import run_scaling
+
+        return run_scaling(args.threads or 1, args.quick, "tools/results/bench_train_scaling.json",
+                           "tools/results/bench_train_scaling.png")
     with tempfile.TemporaryDirectory() as d:
         scene = args.scene
         if scene is None:

@@ -12,6 +12,10 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
   the colour behind each Gaussian is accumulated, and gradients go to a per-(tile, Gaussian) buffer that a
   serial pass sums per Gaussian. No atomics, and the result does not depend on the thread count.
 
+Batched: C cameras share one call. Their tile lists are concatenated (camera c's tile t is global tile
+c * n_tiles + t), so forward and backward are one parallel loop over (camera, tile), and the per-pair
+gradients are summed per camera in the same order as a single-camera call: bitwise the same result.
+
 Determinism: forward and backward are bitwise the same for any numba thread count (tiles own disjoint
 pixels and disjoint per-pair gradient slots; the per-Gaussian sum is serial, in tile-list order). One side
 effect had to be contained: numba's "omp" threading layer shares the OpenMP runtime with torch, and
@@ -89,30 +93,36 @@ def _bin(means2d, radii, order, width, height, tiles_x, tiles_y):
 @njit(cache=True, nogil=True, parallel=True)
 def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, background, width, height,
              tiles_x, image, t_final, last, consts):
-    D = colors.shape[1]
+    """All cameras at once: means2d (C,N,2), conics (C,N,3), colors (C,N,D), radii (C,N); global tile
+    c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W)."""
+    D = colors.shape[2]
     # consts = (0.5, 1, ALPHA_MAX, ALPHA_MIN, T_MIN) in the input dtype: with float32 inputs the maths stays
     # float32 (numba would promote to float64 on any Python float literal)
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
-    n_tiles = offsets.shape[0] - 1
-    for tile in prange(n_tiles):
+    n_tiles = tiles_x * (-(-height // TILE))
+    for gt in prange(offsets.shape[0] - 1):
+        cam, tile = gt // n_tiles, gt % n_tiles
         x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, image)
         P = w * h
         T = np.ones(P, image.dtype)
         C = np.zeros((P, D), image.dtype)
         stop = np.zeros(P, np.int64)
         done = np.zeros(P, np.bool_)
+        col = np.empty(D, image.dtype)
         n_done = 0
-        start, end = offsets[tile], offsets[tile + 1]
+        start, end = offsets[gt], offsets[gt + 1]
         for k in range(start, end):
             if n_done == P:
                 break
             g = ids[k]
-            mx, my = means2d[g, 0], means2d[g, 1]
-            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
+            a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
             o = opacities[g]
             smax = sigma_max[g]
+            for d in range(D):
+                col[d] = colors[cam, g, d]
             # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
-            bx0, bx1, by0, by1 = _box(mx, my, radii[g], x0, y0, x0 + w - 1, y0 + h - 1)
+            bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 for px in range(bx0, bx1 + 1):
@@ -133,26 +143,27 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
                         continue
                     wgt = alpha * T[p]
                     for d in range(D):
-                        C[p, d] += colors[g, d] * wgt
+                        C[p, d] += col[d] * wgt
                     T[p] = nT
                     stop[p] = k + 1
         for p in range(P):
             px, py = x0 + p % w, y0 + p // w
             for d in range(D):
-                image[py, px, d] = C[p, d] + T[p] * background[d]
-            t_final[py, px] = T[p]
-            last[py, px] = stop[p]
+                image[cam, py, px, d] = C[p, d] + T[p] * background[d]
+            t_final[cam, py, px] = T[p]
+            last[cam, py, px] = stop[p]
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, background, width, height,
               tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts):
     """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...]."""
-    D = colors.shape[1]
+    D = colors.shape[2]
     half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
     zero = half - half
-    n_tiles = offsets.shape[0] - 1
-    for tile in prange(n_tiles):
+    n_tiles = tiles_x * (-(-height // TILE))
+    for gt in prange(offsets.shape[0] - 1):
+        cam, tile = gt // n_tiles, gt % n_tiles
         x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
         P = w * h
         T = np.empty(P, t_final.dtype)
@@ -161,25 +172,30 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
         GA = np.empty(P, t_final.dtype)
         TF = np.empty(P, t_final.dtype)
         stop = np.empty(P, np.int64)
-        kmax = offsets[tile]
+        gcol = np.empty(D, t_final.dtype)
+        col = np.empty(D, t_final.dtype)
+        kmax = offsets[gt]
         for p in range(P):
             px, py = x0 + p % w, y0 + p // w
-            T[p] = t_final[py, px]
+            T[p] = t_final[cam, py, px]
             TF[p] = T[p]
-            stop[p] = last[py, px]
+            stop[p] = last[cam, py, px]
             kmax = max(kmax, stop[p])
-            GA[p] = grad_alpha[py, px]
+            GA[p] = grad_alpha[cam, py, px]
             for d in range(D):
-                G[p, d] = grad_image[py, px, d]
+                G[p, d] = grad_image[cam, py, px, d]
                 S[p, d] = T[p] * background[d]
-        for k in range(kmax - 1, offsets[tile] - 1, -1):
+        for k in range(kmax - 1, offsets[gt] - 1, -1):
             g = ids[k]
-            mx, my = means2d[g, 0], means2d[g, 1]
-            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
+            a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
             o = opacities[g]
-            gmx = gmy = ga = gb = gc = go = 0.0
+            gmx = gmy = ga = gb = gc = go = zero
+            for d in range(D):
+                gcol[d] = zero
+                col[d] = colors[cam, g, d]
             smax = sigma_max[g]
-            bx0, bx1, by0, by1 = _box(mx, my, radii[g], x0, y0, x0 + w - 1, y0 + h - 1)
+            bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 for px in range(bx0, bx1 + 1):
@@ -195,19 +211,19 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
                     alpha = min(amax, raw)
                     if alpha < amin:
                         continue
-                    one_m = one - alpha
-                    Ti = T[p] / one_m            # transmittance in front of this Gaussian
+                    inv = one / (one - alpha)    # 1 - alpha >= 0.01
+                    Ti = T[p] * inv              # transmittance in front of this Gaussian
                     wgt = alpha * Ti
                     cg = zero
                     sg = zero
                     for d in range(D):
-                        per_pair[k, 6 + d] += wgt * G[p, d]
-                        cg += colors[g, d] * G[p, d]
+                        gcol[d] += wgt * G[p, d]
+                        cg += col[d] * G[p, d]
                         sg += S[p, d] * G[p, d]
                     # dL/dalpha: own colour, everything behind (S, incl. background), the alpha output
-                    d_alpha = Ti * cg - sg / one_m + GA[p] * TF[p] / one_m
+                    d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
                     for d in range(D):
-                        S[p, d] += colors[g, d] * wgt
+                        S[p, d] += col[d] * wgt
                     T[p] = Ti
                     if raw > amax:              # clamped: no gradient to opacity or the footprint
                         continue
@@ -218,6 +234,8 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
                     ga += d_sigma * half * dx * dx
                     gb += d_sigma * dx * dy
                     gc += d_sigma * half * dy * dy
+            for d in range(D):
+                per_pair[k, 6 + d] = gcol[d]
             per_pair[k, 0] += gmx
             per_pair[k, 1] += gmy
             per_pair[k, 2] += ga
@@ -226,11 +244,16 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
             per_pair[k, 5] += go
 
 
-@njit(cache=True, nogil=True)
-def _reduce(ids, per_pair, n):
-    out = np.zeros((n, per_pair.shape[1]), per_pair.dtype)
-    for k in range(ids.shape[0]):
-        out[ids[k]] += per_pair[k]
+@njit(cache=True, nogil=True, parallel=True)
+def _reduce(ids, per_pair, offsets, n_cameras, n):
+    """Per camera (in parallel: disjoint rows), a serial sum in tile-list order: (C, N, 6 + D)."""
+    out = np.zeros((n_cameras, n, per_pair.shape[1]), per_pair.dtype)
+    n_tiles = (offsets.shape[0] - 1) // n_cameras
+    for c in prange(n_cameras):
+        for k in range(offsets[c * n_tiles], offsets[(c + 1) * n_tiles]):
+            g = ids[k]
+            for j in range(per_pair.shape[1]):
+                out[c, g, j] += per_pair[k, j]
     return out
 
 
@@ -252,24 +275,41 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy())
 
 
+def _bin_cameras(m, r, depths, width, height, tiles_x, tiles_y):
+    """One tile list for all cameras: camera c's tile t is global tile c * n_tiles + t."""
+    n_tiles = tiles_x * tiles_y
+    offsets, ids, base = [np.zeros(1, np.int64)], [], 0
+    for c in range(m.shape[0]):
+        visible = np.flatnonzero(r[c] > 0)
+        order = visible[np.argsort(depths[c][visible], kind="stable")]
+        off, idc = _bin(m[c], r[c], order, width, height, tiles_x, tiles_y)
+        offsets.append(off[1:] + base)
+        ids.append(idc)
+        base += len(idc)
+    return np.concatenate(offsets), (np.concatenate(ids) if ids else np.zeros(0, np.int64)), n_tiles
+
+
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, depths, radii, width, height, background):
+        """Batched: means2d (C,N,2), conics (C,N,3), colors (C,N,D) or shared (N,D), depths and radii (C,N)."""
         dtype = colors.dtype
         m, q, col, o = (_np(x.to(dtype)) for x in (means2d, conics, colors, opacities))
+        C = m.shape[0]
+        ctx.shared_colors = col.ndim == 2
+        if ctx.shared_colors:
+            col = np.ascontiguousarray(np.broadcast_to(col, (C,) + col.shape))
         bg = _np(background.to(dtype))
         r = _np(radii).astype(np.int64)
-        visible = np.flatnonzero(r > 0)
-        order = visible[np.argsort(_np(depths)[visible], kind="stable")]
         tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-        offsets, ids = _bin(m, r, order, width, height, tiles_x, tiles_y)
+        offsets, ids, n_tiles = _bin_cameras(m, r, _np(depths), width, height, tiles_x, tiles_y)
         # alpha >= 1/255 needs sigma <= ln(255 o): beyond that (plus a margin, so the exact alpha test still
         # decides at the boundary) no exp is computed
         with np.errstate(divide="ignore"):
             smax = (np.log(np.maximum(o.astype(np.float64), 0.0) * 255.0) + 1e-6).astype(col.dtype)
-        image = np.empty((height, width, col.shape[1]), col.dtype)
-        t_final = np.empty((height, width), col.dtype)
-        last = np.empty((height, width), np.int64)
+        image = np.empty((C, height, width, col.shape[2]), col.dtype)
+        t_final = np.empty((C, height, width), col.dtype)
+        last = np.empty((C, height, width), np.int64)
         _parallel(_forward, m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, image, t_final, last,
                   _consts(col.dtype))
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
@@ -282,28 +322,46 @@ class _RasterizeCPU(torch.autograd.Function):
     def backward(ctx, grad_image, grad_alpha):
         m, q, col, o, r, smax, bg, offsets, ids, t_final, last = ctx.arrays
         width, height, tiles_x = ctx.size
-        gi = (np.zeros((height, width, col.shape[1]), col.dtype) if grad_image is None
+        C, N, D = col.shape
+        gi = (np.zeros((C, height, width, D), col.dtype) if grad_image is None
               else _np(grad_image).astype(col.dtype, copy=False))
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
-        per_pair = np.zeros((len(ids), 6 + col.shape[1]), col.dtype)
+        per_pair = np.zeros((len(ids), 6 + D), col.dtype)
         _parallel(_backward, m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, t_final, last, gi, ga,
                   per_pair, _consts(col.dtype))
-        g = torch.from_numpy(_reduce(ids, per_pair, len(m)))
+        g = _reduce(ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None
         if ctx.needs_input_grad[8]:
-            grad_bg = torch.from_numpy((gi * t_final[..., None]).sum(axis=(0, 1))).to(background.dtype)
-        return (g[:, 0:2].to(means2d.dtype), g[:, 2:5].to(conics.dtype), g[:, 6:].to(colors.dtype),
-                g[:, 5].to(opacities.dtype), None, None, None, None, grad_bg)
+            grad_bg = torch.from_numpy((gi * t_final[..., None]).sum(axis=(1, 2)).sum(axis=0)).to(background.dtype)
+        g_op = g[0, :, 5].copy()
+        for c in range(1, C):  # fixed camera order
+            g_op += g[c, :, 5]
+        g_col = g[:, :, 6:]
+        if ctx.shared_colors:
+            g_sum = g_col[0].copy()
+            for c in range(1, C):
+                g_sum += g_col[c]
+            g_col = g_sum
+        t = torch.from_numpy
+        return (t(np.ascontiguousarray(g[..., 0:2])).to(means2d.dtype),
+                t(np.ascontiguousarray(g[..., 2:5])).to(conics.dtype), t(np.ascontiguousarray(g_col)).to(colors.dtype),
+                t(g_op).to(opacities.dtype), None, None, None, None, grad_bg)
 
 
 def rasterize_cpu(means2d, conics, colors, opacities, depths, radii, width: int, height: int,
                   background=None, threads: int | None = None):
-    """Same signature and result as reference.rasterize_reference: (image (H,W,D), alpha (H,W,1))."""
+    """Same signature and result as reference.rasterize_reference: (image (H,W,D), alpha (H,W,1)). Batched
+    over C cameras when means2d is (C,N,2) (conics (C,N,3), depths/radii (C,N), colors (C,N,D) or shared
+    (N,D)): (C,H,W,D), (C,H,W,1), every camera's gradients exactly those of its own single-camera call."""
     if background is None:
-        background = torch.zeros(colors.shape[1], dtype=colors.dtype)
+        background = torch.zeros(colors.shape[-1], dtype=colors.dtype)
     if threads is not None:
         numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
-    return _RasterizeCPU.apply(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
-                               background.to(colors.dtype))
+    batched = means2d.ndim == 3
+    if not batched:
+        means2d, conics, depths, radii = means2d[None], conics[None], depths[None], radii[None]
+    image, alpha = _RasterizeCPU.apply(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
+                                       background.to(colors.dtype))
+    return (image, alpha) if batched else (image[0], alpha[0])

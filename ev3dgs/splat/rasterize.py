@@ -8,8 +8,15 @@ pixel convention (pixel (x, y) is evaluated at exactly (x, y)). Returns image (H
 render_mode="RGB+D": the last is the alpha-weighted depth, as gsplat's "D"), alpha (H,W,1), and meta with
 the projected `means2d` (whose .grad feeds densification), `radii`, `depths`, `width`, `height`.
 
+Batched: viewmat (C,4,4) renders C cameras at once: image (C,H,W,D), alpha (C,H,W,1), meta means2d (C,N,2),
+radii/depths (C,N), n_cameras C. On "cpu" that is one numba projection + SH kernel for all cameras
+(project_cpu.py, hand-written backward), one binning pass and one rasterizer kernel over (camera, tile); each
+camera's image and gradients are bitwise those of its own single-camera call. Other backends loop over the
+cameras (their stacked meta["means2d"] then carries no gradient: render per camera for densification).
+
 Backends: "reference" (plain torch, the test oracle), "cpu" (numba kernels, exact), "cuda" (gsplat, when
-CUDA and gsplat are available), "auto" (cuda for CUDA tensors when possible, else cpu).
+CUDA and gsplat are available), "auto" (cuda for CUDA tensors when possible, else cpu). The cpu backend uses
+the torch projection instead when viewmat or K requires a gradient.
 """
 from __future__ import annotations
 
@@ -36,8 +43,10 @@ def _check(means, quats, scales, opacities, colors, viewmat, K, width, height, s
     n = means.shape[0]
     if means.ndim != 2 or means.shape[1] != 3:
         raise InputError(f"means must be (N, 3), got {tuple(means.shape)}")
+    if viewmat.ndim == 3 and (viewmat.shape[0] < 1 or tuple(viewmat.shape[1:]) != (4, 4)):
+        raise InputError(f"viewmat must be (4, 4) or (C, 4, 4), got {tuple(viewmat.shape)}")
     for name, t, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)), ("opacities", opacities, (n,)),
-                           ("viewmat", viewmat, (4, 4)), ("K", K, (3, 3))):
+                           ("viewmat", viewmat[0] if viewmat.ndim == 3 else viewmat, (4, 4)), ("K", K, (3, 3))):
         if tuple(t.shape) != shape:
             raise InputError(f"{name} must be {shape}, got {tuple(t.shape)}")
     if colors.shape[0] != n or colors.ndim not in (2, 3):
@@ -59,6 +68,17 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
     _check(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree)
     if backend == "auto":
         backend = "cuda" if means.is_cuda and cuda_available() else "cpu"
+    if backend == "cpu" and not (viewmat.requires_grad or K.requires_grad or means.is_cuda):
+        return _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree,
+                                  near_plane, far_plane, eps2d, background, render_mode, threads)
+    if viewmat.ndim == 3:  # one camera at a time, stacked (the oracle for the batched cpu path)
+        outs = [rasterization(means, quats, scales, opacities, colors, v, K, width, height, sh_degree=sh_degree,
+                              near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, background=background,
+                              render_mode=render_mode, backend=backend, threads=threads) for v in viewmat]
+        meta = {k: (torch.stack([o[2][k] for o in outs]) if torch.is_tensor(outs[0][2][k]) else outs[0][2][k])
+                for k in outs[0][2]}
+        meta["n_cameras"] = len(outs)
+        return torch.stack([o[0] for o in outs]), torch.stack([o[1] for o in outs]), meta
     if backend == "cuda":
         from .cuda import rasterization_cuda
 
@@ -86,4 +106,38 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
         image, alpha = rasterize_cpu(*args, threads=threads)
     meta = {"means2d": proj.means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
             "width": width, "height": height, "n_cameras": 1}
+    return image, alpha, meta
+
+
+def _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, near_plane,
+                       far_plane, eps2d, background, render_mode, threads):
+    """numba projection + SH for all cameras in one call, then one batched rasterizer call."""
+    from .cpu import rasterize_cpu
+    from .project_cpu import project_sh_cpu
+
+    if threads is not None:  # the projection kernel runs on the same numba thread count as the rasterizer
+        import numba
+
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    batched = viewmat.ndim == 3
+    viewmats = viewmat if batched else viewmat[None]
+    sh = colors if colors.ndim == 3 else None
+    m2d, conics, depths, sh_colors, radii = project_sh_cpu(
+        means, quats, scales, opacities, sh, viewmats, K, width, height,
+        sh_degree=sh_degree if sh is not None else None, near=near_plane, far=far_plane, eps2d=eps2d)
+    cols = sh_colors if sh is not None else colors  # (C,N,3) per camera, or (N,D) shared
+    if background is None:
+        background = torch.zeros(cols.shape[-1], dtype=cols.dtype, device=cols.device)
+    if render_mode == "RGB+D":
+        if cols.ndim == 2:
+            cols = cols.expand(viewmats.shape[0], -1, -1)
+        cols = torch.cat([cols, depths[..., None].to(cols.dtype)], dim=-1)
+        background = torch.cat([background, background.new_zeros(1)])
+    if not batched:
+        m2d, conics, depths, radii = m2d[0], conics[0], depths[0], radii[0]
+        cols = cols[0] if cols.ndim == 3 else cols
+    image, alpha = rasterize_cpu(m2d, conics, cols, opacities, depths, radii, width, height, background,
+                                 threads=threads)
+    meta = {"means2d": m2d, "radii": radii, "depths": depths, "conics": conics, "width": width, "height": height,
+            "n_cameras": viewmats.shape[0] if batched else 1}
     return image, alpha, meta
