@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: setup test test-slow demo bench study-quick study clean
+.PHONY: setup test test-slow demo bench study-quick study bench-fidelity bench-fidelity-quick clean
 
 setup: $(STAMP)
 
@@ -40,6 +40,14 @@ study: setup
 	$(BIN)/python tools/study_sim.py
 	$(BIN)/python tools/study_render.py
 	$(BIN)/python tools/study_train.py
+
+# issue 13: naive / blur-only / blur+event / sharp oracle on the built-in scenes, 3 seeds (~1 h on 2 cores);
+# the quick one is lego, one seed, small size (<= 10 minutes)
+bench-fidelity: setup
+	$(BIN)/python tools/bench_fidelity.py
+
+bench-fidelity-quick: setup
+	$(BIN)/python tools/bench_fidelity.py --quick
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache

@@ -26,6 +26,17 @@ from .events import Events
 FORMAT = "ev3dgs-scene"
 VERSION = 1
 COLOR_FILTERS = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
+# /events attr count_convention: where each pixel's reference stood when its exposure began.
+#   "random_phase": at a uniformly random phase within one threshold (a real sensor that has been running; our
+#     simulator's default), so the expected count over a change D is D / theta;
+#   "exact_reference": exactly at the log intensity of the exposure's first pose (v2e / ESIM restarted per view:
+#     E2NeRF's data, our simulator with reference = "exact"), so counts are truncated toward zero.
+COUNT_CONVENTIONS = ("random_phase", "exact_reference")
+# /train attr transfer: what the stored uint8 images encode and in which domain the blur happened.
+#   "srgb": sRGB-encoded images of linear-light blur (our Blender data, DAVIS APS frames); events see linear light
+#   "display": blur and events both computed on display values (E2NeRF / v2e): no sRGB decode before the log
+#   "linear": images stored linearly (blur and events in linear light, no decode)
+TRANSFERS = ("srgb", "linear", "display")
 CHECK_ROWS = 1 << 20        # events scanned per step by validate
 EVENT_CHUNK = 1 << 18       # HDF5 chunk length of the event datasets
 _COPY_BYTES = 64 << 20      # bytes per block when copying a large array into the file
@@ -111,6 +122,8 @@ class EventSensor:
     color_filter: str = "none"                        # "none" or RGGB/BGGR/GRBG/GBRG
     refractory_us: float = 0
     log_knee: float | None = None                     # optional, for the trainer's log model
+    count_convention: str | None = None               # COUNT_CONVENTIONS; None (absent): default_count_convention
+    camera_raw_matrix: np.ndarray | None = None       # f8 (3,3) camera raw = M @ linear sRGB; None: identity
 
 
 @dataclass
@@ -121,6 +134,7 @@ class Train:
     pose_t: np.ndarray | None = None                  # i8 (N,S)
     sharp: Any = None                                 # u1 (N,H,W,3)
     sharp_poses: np.ndarray | None = None             # f8 (N,4,4)
+    transfer: str | None = None                       # attr, TRANSFERS; None: default_transfer
 
     def __len__(self) -> int:
         return len(self.images)
@@ -141,6 +155,9 @@ class Points:
 
 @dataclass
 class Imu:
+    """IMU samples in the camera frame the scene uses (OpenCV: x right, y down, z forward, right-handed; both
+    sensors in the same frame, so an upright camera at rest reads accel ~ (0, -1, 0) g and a positive gyro z is a
+    clockwise roll seen from behind the camera)."""
     t: np.ndarray                                     # i8 (I,)
     accel: np.ndarray                                 # f4 (I,3) g
     gyro: np.ndarray                                  # f4 (I,3) deg/s
@@ -303,6 +320,10 @@ def _write_contents(f: h5py.File, s: Scene, config: str, created: str, check=Non
                     color_filter=str(sn.color_filter), refractory_us=sn.refractory_us)
     if sn.log_knee is not None:
         ev.attrs["log_knee"] = float(sn.log_knee)
+    if sn.count_convention is not None:
+        ev.attrs["count_convention"] = str(sn.count_convention)
+    if sn.camera_raw_matrix is not None:
+        ev.attrs["camera_raw_matrix"] = _cast(sn.camera_raw_matrix, np.float64, "/events")
     for group, items in _PARTS.items():
         part = getattr(s, group)
         g = None if part is None else f.create_group(group)
@@ -312,6 +333,8 @@ def _write_contents(f: h5py.File, s: Scene, config: str, created: str, check=Non
                     _put_large(g, name, getattr(part, name), dt, 1, check)
                 else:
                     _put(g, name, getattr(part, name), dt)
+        if group == "train" and part is not None and part.transfer is not None:
+            g.attrs["transfer"] = str(part.transfer)
 
 
 # -------------------------------------------------------------------------------------- validate
@@ -389,16 +412,43 @@ def read(path: str | os.PathLike, require_complete: bool = True) -> Scene:
                         None if bg is None else tuple(float(v) for v in bg))
         ea = f["events"].attrs
         refr = ea["refractory_us"]
+        source = _str(f.attrs.get("source", "")) or ""
+        config = json.loads(_str(f.attrs.get("config", "{}")))
         sensor = EventSensor(float(ea["pos_threshold"]), float(ea["neg_threshold"]), _str(ea["color_filter"]),
                              int(refr) if _is_int(refr) else float(refr),
-                             float(ea["log_knee"]) if "log_knee" in ea else None)
+                             float(ea["log_knee"]) if "log_knee" in ea else None,
+                             _str(ea["count_convention"]) if "count_convention" in ea else None,
+                             np.asarray(ea["camera_raw_matrix"], np.float64) if "camera_raw_matrix" in ea else None)
         events = LazyEvents(*(lazy(f"/events/{n}") for n, _ in _EVENT_DTYPES))
         parts = {group: _CLASSES[group](*(None if f"/{group}/{n}" not in f else
                                           lazy(f"/{group}/{n}") if large else get(f"/{group}/{n}")
                                           for n, _, _, large, _ in items))
                  for group, items in _PARTS.items() if group in f}
+        if "train" in parts and "transfer" in f["train"].attrs:  # absent: None (see default_transfer)
+            parts["train"].transfer = _str(f["train"].attrs["transfer"])
         bounds = np.asarray(f.attrs["bounds"], np.float64) if "bounds" in f.attrs else None
-        return Scene(name=_str(f.attrs.get("name", "")) or "", source=_str(f.attrs.get("source", "")) or "",
+        return Scene(name=_str(f.attrs.get("name", "")) or "", source=source,
                      camera=camera, events=events, sensor=sensor, **parts, bounds=bounds,
-                     config=json.loads(_str(f.attrs.get("config", "{}"))),
+                     config=config,
                      created=_str(f.attrs.get("created", "")) or "")
+
+
+def default_count_convention(source: str, config: dict) -> str:
+    """count_convention of a file without the attr (read() gives None; the trainer uses this):
+    "exact_reference" for E2NeRF imports (v2e restarted per view) and for simulated files whose settings carry
+    no dvs.reference (our simulator before it had one started each view at an exact reference); a simulated
+    file that records dvs.reference follows it; anything else (real recordings) "random_phase"."""
+    if source == "e2nerf":
+        return "exact_reference"
+    dvs = config.get("sim", {}).get("dvs") if isinstance(config.get("sim"), dict) else None
+    if isinstance(dvs, dict):
+        ref = dvs.get("reference")
+        return "random_phase" if ref == "random" else "exact_reference"
+    return "random_phase"
+
+
+def default_transfer(source: str) -> str:
+    """/train transfer of a file without the attr (read() gives None; the trainer uses this): "display" for E2NeRF
+    imports (v2e events and ISP blur of display values), "srgb" otherwise (our simulator and DAVIS ingest
+    store sRGB-encoded images of linear-light blur)."""
+    return "display" if source == "e2nerf" else "srgb"

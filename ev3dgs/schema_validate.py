@@ -19,7 +19,8 @@ import numpy as np
 
 from . import schema
 from .errors import SchemaError, SchemaWarning
-from .schema import _EVENT_DTYPES, _OPTIONAL, _PARTS, COLOR_FILTERS, FORMAT, VERSION, _is_int, _open, _str
+from .schema import (_EVENT_DTYPES, _OPTIONAL, _PARTS, COLOR_FILTERS, COUNT_CONVENTIONS, FORMAT, TRANSFERS, VERSION,
+                     _is_int, _open, _str)
 
 # Poses are stored as float64 but not all producers compute them in float64: pycolmap's come from unit
 # quaternions in float64 (max |R^T R - I| ~ 3e-15), while Blender hands back float32 matrix_world (the simulator's
@@ -208,6 +209,10 @@ def _validate(f: h5py.File, complete: bool, notes: list[str]) -> None:
                                  else "leave /test out instead"))
     if "train" in f:
         exposure = _validate_times(f)
+        if "transfer" in f["train"].attrs:
+            tf = _str(f["train"].attrs["transfer"])
+            if tf not in TRANSFERS:
+                raise SchemaError(f"/train: attr transfer must be one of {TRANSFERS}, found {tf!r}")
 
     _validate_events(f, W, H, exposure, notes)
 
@@ -291,6 +296,16 @@ def _validate_events(f: h5py.File, W: int, H: int, exposure: np.ndarray | None, 
     cf = _str(ev.attrs.get("color_filter"))
     if cf not in COLOR_FILTERS:
         raise SchemaError(f"/events: attr color_filter must be one of {COLOR_FILTERS}, found {cf!r}")
+    if "count_convention" in ev.attrs:
+        cc = _str(ev.attrs["count_convention"])
+        if cc not in COUNT_CONVENTIONS:
+            raise SchemaError(f"/events: attr count_convention must be one of {COUNT_CONVENTIONS}, found {cc!r}")
+    if "camera_raw_matrix" in ev.attrs:  # the trainer takes each Bayer pixel's channel of M @ linear sRGB
+        m = np.asarray(ev.attrs["camera_raw_matrix"])
+        if m.shape != (3, 3) or m.dtype.kind not in "iuf" or not np.all(np.isfinite(m)) \
+                or abs(float(np.linalg.det(m.astype(np.float64)))) < 1e-9:
+            raise SchemaError(f"/events: attr camera_raw_matrix must be a finite invertible 3x3 matrix, found "
+                              f"{m.tolist() if m.size <= 16 else m.shape}")
 
     E, rows = dims["E"], schema.CHECK_ROWS
     inside = 0          # events within [start, end] of some exposure (counted until the first block with any)

@@ -322,7 +322,36 @@ CORRUPTIONS = [
      "/points/rgb: expected shape (P=40, 3)"),
     ("imu gyro", _replace("/imu/gyro", lambda f: f["/imu/gyro"][:, :2]), "/imu/gyro: expected shape (I=20, 3)"),
     ("imu missing", _del("/imu/temperature"), "/imu/temperature: missing"),
+    ("count convention", _attr("/events", "count_convention", "floor"), "/events: attr count_convention"),
+    ("raw matrix shape", _attr("/events", "camera_raw_matrix", np.eye(2)), "/events: attr camera_raw_matrix"),
+    ("raw matrix singular", _attr("/events", "camera_raw_matrix", np.zeros((3, 3))),
+     "/events: attr camera_raw_matrix"),
+    ("raw matrix nan", _attr("/events", "camera_raw_matrix", np.full((3, 3), np.nan)),
+     "/events: attr camera_raw_matrix"),
+    ("transfer", _attr("/train", "transfer", "gamma22"), "/train: attr transfer must be one of"),
 ]
+
+
+def test_fidelity_attrs_round_trip_and_defaults(tmp_path, rng):
+    """count_convention, camera_raw_matrix (/events) and transfer (/train) round-trip; absent they read as
+    None and the documented defaults apply."""
+    s = make_scene(rng)
+    s.sensor.count_convention = "exact_reference"
+    s.sensor.camera_raw_matrix = np.array([[0.5, 0.1, 0.0], [0.1, 1.0, 0.1], [0.0, 0.1, 0.6]])
+    s.train.transfer = "display"
+    write(s, tmp_path / "a.h5")
+    r = read(tmp_path / "a.h5")
+    assert r.sensor.count_convention == "exact_reference" and r.train.transfer == "display"
+    np.testing.assert_array_equal(r.sensor.camera_raw_matrix, s.sensor.camera_raw_matrix)
+    old = make_scene(rng)
+    write(old, tmp_path / "old.h5")
+    r = read(tmp_path / "old.h5")
+    assert r.sensor.count_convention is None and r.train.transfer is None and r.sensor.camera_raw_matrix is None
+    assert schema.default_transfer("blender") == "srgb" and schema.default_transfer("e2nerf") == "display"
+    assert schema.default_count_convention("e2nerf", {}) == "exact_reference"
+    assert schema.default_count_convention("davis", {}) == "random_phase"
+    assert schema.default_count_convention("blender", {"sim": {"dvs": {"reference": "random"}}}) == "random_phase"
+    assert schema.default_count_convention("blender", {"sim": {"dvs": {"pos_threshold": 0.2}}}) == "exact_reference"
 
 
 @pytest.mark.parametrize("name,corrupt,message", CORRUPTIONS, ids=[c[0] for c in CORRUPTIONS])

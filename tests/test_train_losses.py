@@ -158,18 +158,26 @@ def test_event_loss_sign_and_hand_computed_prediction():
     pos = event_loss(log_up, torch.full((1, 2, 2), n), [(0, 1)], tp, tn)
     neg = event_loss(log_up, torch.full((1, 2, 2), -n), [(0, 1)], tp, tn)
     assert pos < neg
-    # zero target -> loss = pred^2; pred = d / theta_pos for a brightening
+    # residual in log units over the mean threshold: zero target -> (d / theta_mean)^2 either way
+    tm = 0.5 * (tp + tn)
     z = event_loss(log_up, torch.zeros(1, 2, 2), [(0, 1)], tp, tn)
-    assert float(z) == pytest.approx((d / tp) ** 2, rel=1e-5)
-    # darkening: pred = -d / theta_neg
+    assert float(z) == pytest.approx((d / tm) ** 2, rel=1e-5)
     log_down = log_intensity(torch.cat([bright, dark]))
     zd = event_loss(log_down, torch.zeros(1, 2, 2), [(0, 1)], tp, tn)
-    assert float(zd) == pytest.approx((d / tn) ** 2, rel=1e-5)
-    # mixed pixels in one map: mean of per-pixel squared errors with their own threshold
+    assert float(zd) == pytest.approx((d / tm) ** 2, rel=1e-5)
+    # a net count n > 0 means n ON events (expected change n * theta_on), n < 0 |n| OFF (n * theta_off)
     ll = torch.tensor([[[0.0, 0.0]], [[0.5, -0.6]]])
     got = event_loss(ll, torch.tensor([[[1.0, -1.0]]]), [(0, 1)], tp, tn)
-    want = ((0.5 / tp - 1.0) ** 2 + (-0.6 / tn + 1.0) ** 2) / 2
+    want = ((0.5 - tp) ** 2 + (-0.6 + tn) ** 2) / 2 / tm ** 2
     assert float(got) == pytest.approx(want, rel=1e-6)
+    # ON/OFF pair counts: expected theta_on * n_on - theta_off * n_off
+    onoff = torch.tensor([[[[3.0, 1.0]], [[1.0, 2.0]]]])  # (P=1, 2, H=1, W=2): ON (3, 1), OFF (1, 2)
+    got = event_loss(ll, onoff, [(0, 1)], tp, tn)
+    want = ((0.5 - (3 * tp - tn)) ** 2 + (-0.6 - (tp - 2 * tn)) ** 2) / 2 / tm ** 2
+    assert float(got) == pytest.approx(want, rel=1e-6)
+    # symmetric thresholds: exactly the old mean((delta / theta - n)^2), so --event-weight keeps its meaning
+    old = ((0.5 / 0.2 - 1.0) ** 2 + (-0.6 / 0.2 + 1.0) ** 2) / 2
+    assert float(event_loss(ll, torch.tensor([[[1.0, -1.0]]]), [(0, 1)], 0.2, 0.2)) == pytest.approx(old, rel=1e-6)
 
 
 def test_event_loss_learnable_thresholds_get_finite_gradients():
@@ -332,3 +340,32 @@ def test_lpips_reason(tmp_path):
     f = tmp_path / "w.pth"
     f.write_bytes(b"x")
     assert lpips_unavailable_reason(f) is None
+
+
+def test_ssim_separable_equals_the_2d_window_float64():
+    """The separable SSIM equals graphdeco's 2-D 11x11 window version (values and gradients) to rounding."""
+    import math
+
+    import torch.nn.functional as F
+
+    from ev3dgs.train.losses import ssim
+
+    def ssim_2d(a, b):
+        g = torch.tensor([math.exp(-((i - 5) ** 2) / (2 * 1.5 ** 2)) for i in range(11)], dtype=torch.float64)
+        g = g / g.sum()
+        win = torch.outer(g, g).expand(3, 1, 11, 11).contiguous()
+        x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+        conv = lambda z: F.conv2d(z, win, padding=5, groups=3)  # noqa: E731
+        mu1, mu2 = conv(x), conv(y)
+        s1, s2, s12 = conv(x * x) - mu1 ** 2, conv(y * y) - mu2 ** 2, conv(x * y) - mu1 * mu2
+        m = ((2 * mu1 * mu2 + 1e-4) * (2 * s12 + 9e-4)) / ((mu1 ** 2 + mu2 ** 2 + 1e-4) * (s1 + s2 + 9e-4))
+        return m.mean()
+
+    gen = torch.Generator().manual_seed(0)
+    for h, w in ((5, 7), (24, 31), (72, 96)):
+        a = torch.rand(h, w, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+        b = torch.rand(h, w, 3, generator=gen, dtype=torch.float64)
+        x, y = ssim(a, b), ssim_2d(a, b)
+        ga, = torch.autograd.grad(x, a)
+        gb, = torch.autograd.grad(y, a)
+        assert abs(float(x - y)) < 1e-12 and float((ga - gb).abs().max()) < 1e-12

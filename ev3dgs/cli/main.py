@@ -64,7 +64,8 @@ def _train(args) -> int:
     opts = dict(
         scene=args.scene, iterations=args.iterations, subposes=args.subposes, event_weight=args.event_weight,
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
-        blur_space=args.blur_space, learn_thresholds=args.learn_thresholds, sh_degree=args.sh_degree,
+        blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
+        learn_thresholds=args.learn_thresholds, sh_degree=args.sh_degree,
         init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
         device=args.device, threads=args.threads, backend=args.backend)
     if args.resume:  # the run's saved settings, with only what the command line gave on top (checked there)
@@ -168,9 +169,16 @@ def build_parser():
                    help="ablation: plain 3DGS on the blurry frame at the mid pose (default: off)")
     t.add_argument("--no-event-loss", action="store_true",
                    help="ablation: blur loss only (default: off, the event loss is used)")
-    t.add_argument("--blur-space", choices=("srgb", "linear"), default="srgb",
-                   help="where the sub-pose renders are averaged into the blurry image: srgb values or linear "
-                        "intensity (default %(default)s)")
+    t.add_argument("--blur-space", choices=("auto", "srgb", "linear"), default="auto",
+                   help="where the sub-pose renders are averaged into the blurry image: srgb (stored) values or "
+                        "linear intensity; auto: from the scene's /train transfer, linear for sRGB images of "
+                        "linear-light blur, srgb for display/linear ones (default %(default)s)")
+    t.add_argument("--event-domain", choices=("auto", "linear", "display"), default="auto",
+                   help="what the event pixels' log is taken of: linear light or display values (v2e-made "
+                        "events, E2NeRF); auto: from the scene's /train transfer (default %(default)s)")
+    t.add_argument("--oracle", action="store_true",
+                   help="the evaluation's upper bound: plain 3DGS on the sharp frames (/train/sharp) at their "
+                        "poses, no blur model, no events (default: off)")
     t.add_argument("--learn-thresholds", action="store_true",
                    help="optimise the ON/OFF contrast thresholds (log intensity) with the model "
                         "(default: off, the scene file's thresholds are kept fixed)")

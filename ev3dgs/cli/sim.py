@@ -23,7 +23,7 @@ def _events(args) -> int:
     H, W = frames.shape[1:3]
     scene = schema.Scene(
         name=args.input.rsplit("/", 1)[-1].removesuffix(".npz"), source="ev3dgs-sim events",
-        camera=schema.Camera(width=W, height=H), events=ev, sensor=event_sensor(cfg.dvs),
+        camera=schema.Camera(width=W, height=H), events=ev, sensor=event_sensor(cfg.dvs, cfg.isp),
         config=provenance(cfg, seed=args.seed, input=args.input, frames=int(len(frames)),
                           time_range_us=[int(np.min(t_us)), int(np.max(t_us))]),
     )

@@ -27,6 +27,7 @@ import numpy as np
 from .. import schema
 from ..errors import InputError
 from ..events import Events
+from ..logmap import DEFAULT_LOG_KNEE
 from .calibration import load_calibration
 from .recording import open_recording
 from .edi import linear_to_srgb
@@ -53,6 +54,7 @@ class DavisOptions:
     min_registered: float = 0.5
     aps_linear: bool = True           # DAVIS APS frames are linear in light: sRGB-encode them for the scene
     strict: bool = False              # reader: raise on a corrupt packet / contradicted value instead of dropping it
+    sensor_size: tuple[int, int] | None = None   # AEDAT 2.0/3.1 without a camera name in the header: (W, H)
 
     def __post_init__(self):
         if self.every < 1:
@@ -98,11 +100,16 @@ def to_rgb8(image: np.ndarray) -> np.ndarray:
     raise InputError(f"unsupported frame with {img.shape[-1]} channels")
 
 
+def min_exposure(opts: DavisOptions) -> int:
+    """The exposure threshold applied (a frame with no exposure at all is never a view)."""
+    return max(1, opts.min_exposure_us)
+
+
 def select_frames(frames, opts: DavisOptions, width: int, height: int) -> tuple[list[FrameData], int]:
     kept, total, eligible = [], 0, 0
     for f in frames:
         total += 1
-        if f.exposure_end - f.exposure_start < max(1, opts.min_exposure_us):
+        if f.exposure_end - f.exposure_start < min_exposure(opts):
             continue
         if f.image.shape[:2] != (height, width) or tuple(f.position) != (0, 0):
             continue  # an ROI frame: not a full view of the scene
@@ -128,13 +135,21 @@ def read_events(reader, opts: DavisOptions, views: list[FrameData]) -> Events:
     else:
         m = int(opts.event_margin_ms * 1000)
         parts = []
-        for s, e in _merge_windows([(v.exposure_start - m, v.exposure_end + m) for v in views]):
+        for s, e in _merge_windows([(_window(v)[0] - m, _window(v)[1] + m) for v in views]):
             parts.extend(reader.events(opts.events_stream, s, e))
     ev = Events.concatenate(parts)
     if len(ev) and (np.diff(ev.t) < 0).any():  # packets of one stream out of order: restore time order
         order = np.argsort(ev.t, kind="stable")
         ev = Events(ev.t[order], ev.x[order], ev.y[order], ev.p[order])
     return ev
+
+
+def _window(v: FrameData) -> tuple[int, int]:
+    """[start, end] covering the exposure of every row (a rolling-shutter frame exposes each row at its own time)."""
+    r = v.row_exposure
+    if r is None or not len(r):
+        return v.exposure_start, v.exposure_end
+    return min(v.exposure_start, int(r[:, 0].min())), max(v.exposure_end, int(r[:, 1].max()))
 
 
 def undistort(images: list[np.ndarray], ev: Events, K: np.ndarray, dist: np.ndarray, width: int, height: int):
@@ -181,16 +196,24 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
                  quiet: bool = True) -> IngestStats:
     out = Path(out)
     stats = IngestStats(out)
-    with open_recording(path, strict=opts.strict) as reader, warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the reader keeps its own list; we report it once
-        W, H = reader.sensor_size()
-        views, stats.frames_in_file = select_frames(reader.frames(opts.frames_stream), opts, W, H)
-        if not views:
-            raise InputError(f"{path}: no usable APS frames (full-size, exposure >= {opts.min_exposure_us} us)")
-        ev = read_events(reader, opts, views)
-        imu = reader.imu()
-        stats.warnings = list(reader.warnings)
-        fmt = reader.format
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the reader keeps its own list (opening included); we report it once
+        with open_recording(path, strict=opts.strict, sensor_size=opts.sensor_size) as reader:
+            W, H = reader.sensor_size()
+            views, stats.frames_in_file = select_frames(reader.frames(opts.frames_stream), opts, W, H)
+            if not views:
+                n = stats.frames_in_file
+                why = ("the recording has no APS frames (0 frames)" if n == 0 else
+                       f"none of its {n} APS frames is usable (a view needs a full-size {W}x{H} frame at position "
+                       f"(0, 0) exposed for >= {min_exposure(opts)} us)")
+                raise InputError(f"{path}: {why}")
+            ev = read_events(reader, opts, views)
+            imu = reader.imu()
+            stats.warnings = list(reader.warnings)
+            fmt = reader.format
+    if any(v.rolling_shutter for v in views):
+        stats.warnings.append("rolling-shutter APS frames: each row is exposed at its own time; the scene stores "
+                              "the first row's exposure window per view (events are kept for every row's window)")
     images = [to_rgb8(v.image) for v in views]
     if opts.color_filter == "none" and any(v.image.ndim == 3 and v.image.shape[-1] >= 3 for v in views):
         stats.warnings.append("colour APS frames: a colour DAVIS346's DVS pixels sit under a Bayer filter that "
@@ -225,8 +248,9 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
         camera=schema.Camera(width=W, height=H, K=np.asarray(K, float), distortion=np.zeros(5)),
         events=ev,
         sensor=schema.EventSensor(pos_threshold=opts.pos_threshold, neg_threshold=opts.neg_threshold,
-                                  color_filter=opts.color_filter, refractory_us=0.0),
-        train=schema.Train(images=np.stack(images), exposure=exposure, **train_kw),
+                                  color_filter=opts.color_filter, refractory_us=0.0, log_knee=DEFAULT_LOG_KNEE,
+                                  count_convention="random_phase"),  # a running sensor's reference
+        train=schema.Train(images=np.stack(images), exposure=exposure, transfer="srgb", **train_kw),
         points=points,
         imu=schema.Imu(t=imu.t, accel=imu.accel, gyro=imu.gyro, temperature=imu.temperature) if len(imu) else None,
         config={"recording": str(path), "format": fmt, "options": opts.__dict__,

@@ -55,6 +55,7 @@ REAL_BIN_US = 25_000
 EVENTS_NOTE = "synthesised from E2NeRF binned counts: |count| events per pixel and bin, evenly spaced inside the bin"
 THRESHOLDS_NOTE = "not stored by E2NeRF; given on the command line"
 _IMAGE_EXT = (".jpg", ".jpeg", ".png")
+V2E_LOG_KNEE = 20 / 255         # v2e's lin_log knee: 20 DN of 8-bit display values
 
 
 def import_e2nerf(directory, out: Path, pos_threshold: float = 0.2, neg_threshold: float = 0.2,
@@ -83,9 +84,12 @@ def import_e2nerf(directory, out: Path, pos_threshold: float = 0.2, neg_threshol
         sc = schema.Scene(
             name=name or d.resolve().name, source="e2nerf",
             camera=schema.Camera(W, H, scene["K"], background=(0.0, 0.0, 0.0)), events=events,
-            sensor=schema.EventSensor(float(pos_threshold), float(neg_threshold)),
+            # v2e: lin_log of display grey (8-bit), knee 20 DN; reference set at each view's first frame;
+            # blur by E2NeRF's ISP and events both from display-referred frames
+            sensor=schema.EventSensor(float(pos_threshold), float(neg_threshold), log_knee=V2E_LOG_KNEE,
+                                      count_convention="exact_reference"),
             train=schema.Train(images=lazy["train_images"], exposure=scene["exposure"], poses=scene["poses"],
-                               pose_t=scene["pose_t"]),
+                               pose_t=scene["pose_t"], transfer="display"),
             test=None if "test_images" not in lazy else schema.Test(lazy["test_images"], scene["test_poses"]),
             config=config)
         return schema.write(sc, out)

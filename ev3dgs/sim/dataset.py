@@ -222,10 +222,10 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
     scene = schema.Scene(
         name=spec.name, source="blender",
         camera=schema.Camera(width=W, height=H, K=K, background=tuple(float(c) / 255 for c in bg)),
-        events=events, sensor=event_sensor(spec.sensor.dvs),
+        events=events, sensor=event_sensor(spec.sensor.dvs, spec.sensor.isp),
         train=schema.Train(images=np.stack(images), exposure=np.array(exposure, np.int64),
                            poses=np.stack(poses), pose_t=np.stack(pose_t), sharp=np.stack(sharp),
-                           sharp_poses=np.stack(sharp_poses)),
+                           sharp_poses=np.stack(sharp_poses), transfer="srgb"),  # ISP of linear-light blur
         test=test_part,
         bounds=np.asarray(info["bounds"], np.float64) if info.get("bounds") is not None else None,
         config=provenance(spec.sensor, scene=spec.name, builder=spec.builder, params=spec.params,

@@ -22,7 +22,11 @@ class TrainConfig:
     event_pairs: int = 0              # 0 = all pairs of the b+1 renders, k = k random pairs per step
     naive: bool = False               # plain 3DGS on the blurry frame at the mid pose
     event_loss: bool = True
-    blur_space: str = "srgb"          # or "linear": average the renders in linear intensity
+    blur_space: str = "auto"          # "srgb": average stored (image) values; "linear": average in linear light;
+                                      # "auto": from the scene's /train transfer (srgb -> linear, else srgb)
+    event_domain: str = "auto"        # "linear": events see linear light; "display": events were made from
+                                      # display values (v2e); "auto": from the scene's transfer
+    oracle: bool = False              # the upper bound: plain 3DGS on the sharp frames at their sharp poses
     learn_thresholds: bool = False
     ssim_lambda: float = 0.2
     sh_degree: int = 3
@@ -43,7 +47,9 @@ class TrainConfig:
         n_pairs = self.subposes * (self.subposes - 1) // 2
         check(0 <= self.event_pairs <= n_pairs,
               f"--event-pairs must be in [0, {n_pairs}] ({self.subposes} sub-poses have {n_pairs} pairs)")
-        check(self.blur_space in ("srgb", "linear"), "--blur-space must be srgb or linear")
+        check(self.blur_space in ("auto", "srgb", "linear"), "--blur-space must be auto, srgb or linear")
+        check(self.event_domain in ("auto", "linear", "display"), "--event-domain must be auto, linear or display")
+        check(not (self.oracle and self.naive), "--oracle and --naive are different variants: give one")
         check(0 <= self.ssim_lambda <= 1, "ssim lambda must be in [0, 1]")
         check(0 <= self.sh_degree <= 3, "--sh-degree must be in [0, 3]")
         check(self.sh_interval >= 1, "sh interval must be >= 1")
@@ -56,7 +62,15 @@ class TrainConfig:
 
     @property
     def uses_events(self) -> bool:
-        return self.event_loss and not self.naive and self.subposes > 1 and self.event_weight > 0
+        return (self.event_loss and not self.naive and not self.oracle and self.subposes > 1
+                and self.event_weight > 0)
+
+    @property
+    def variant(self) -> str:
+        """naive, blur-only, blur+event or oracle (the evaluation's label)."""
+        if self.oracle:
+            return "oracle"
+        return "naive" if self.naive else ("blur+event" if self.uses_events else "blur-only")
 
     def save(self, path: Path) -> None:
         path.write_text(json.dumps(asdict(self), indent=2))

@@ -12,7 +12,7 @@ from .. import schema
 from ..errors import InputError
 from ..geometry import interpolate_pose
 from ..logmap import DEFAULT_LOG_KNEE
-from .events import bin_signed_events, sub_pose_times
+from .events import bin_polarity_events, sub_pose_times
 
 
 @dataclass
@@ -26,7 +26,7 @@ class TrainData:
     sub_times: np.ndarray              # (N,B) int64
     viewmats: torch.Tensor             # (N,B,4,4) world->camera at the sub-pose times
     mid_viewmats: torch.Tensor         # (N,4,4) world->camera at the exposure midpoint
-    bins: torch.Tensor | None          # (N,B-1,H,W) signed event counts between sub-poses, None without events
+    bins: torch.Tensor | None          # (N,B-1,2,H,W) ON/OFF event counts between sub-poses, None without events
     pos_threshold: float
     neg_threshold: float
     color_filter: str
@@ -34,6 +34,11 @@ class TrainData:
     camera_centres: np.ndarray         # (N,3)
     points: tuple[np.ndarray, np.ndarray] | None
     bounds: np.ndarray | None
+    transfer: str = "srgb"             # the scene's /train transfer (schema.TRANSFERS)
+    count_convention: str = "random_phase"  # /events count_convention (schema.COUNT_CONVENTIONS)
+    raw_matrix: np.ndarray | None = None    # /events camera_raw_matrix (Bayer pixels; None = identity)
+    blur_space: str = "linear"         # resolved: how the trainer averages renders (blur_loss space)
+    event_transfer: str = "srgb"       # resolved: what log_intensity decodes ("srgb", "linear", "display")
 
     @property
     def n_views(self) -> int:
@@ -50,9 +55,30 @@ def _w2c(c2w: np.ndarray) -> np.ndarray:
     return np.linalg.inv(c2w)
 
 
-def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.float32) -> TrainData:
+def resolve_domains(transfer: str, blur_space: str = "auto", event_domain: str = "auto") -> tuple[str, str]:
+    """(blur space, event transfer) for a scene's /train transfer, "auto" taken from it, flags on top.
+    Blur: "srgb" images are sRGB-encoded linear-light blur -> average in "linear"; "display" and "linear"
+    images were blurred in the stored values -> plain mean ("srgb", i.e. no decode). Events: "display" ->
+    log of display values (no decode, luma); otherwise log of linear light (decoded if the images are sRGB);
+    --event-domain linear / display overrides."""
+    blur = blur_space if blur_space != "auto" else ("linear" if transfer == "srgb" else "srgb")
+    if event_domain == "auto":
+        ev = transfer
+    elif event_domain == "display":
+        ev = "display"
+    else:
+        ev = "linear" if transfer == "linear" else "srgb"
+    return blur, ev
+
+
+def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.float32, blur_space: str = "auto",
+                    event_domain: str = "auto", oracle: bool = False) -> TrainData:
+    """``oracle``: the sharp frames (/train/sharp) at their sharp poses as the training images, one pose per
+    view and no events (the sharp-oracle upper bound of the evaluation protocol)."""
     sc = schema.read(path, require_complete=True)
     tr = sc.train
+    if oracle and (tr.sharp is None or tr.sharp_poses is None):
+        raise InputError(f"{path}: --oracle needs /train/sharp and /train/sharp_poses (a simulated scene)")
     if tr.poses is None:
         raise InputError(f"{path}: /train/poses is missing (a recording ingested without pose estimation); "
                          "re-run ev3dgs-ingest without --no-poses")
@@ -64,12 +90,17 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
     mid_t = np.asarray(tr.exposure).mean(axis=1)
     mid = np.stack([interpolate_pose(tr.poses[v], tr.pose_t[v], mid_t[v]) for v in range(N)])
     bins = None
-    if len(sc.events) and subposes > 1:
+    if len(sc.events) and subposes > 1 and not oracle:
         ev = sc.events.load()
-        bins = torch.from_numpy(bin_signed_events(ev.t, ev.x, ev.y, ev.p, times, H, W)).to(device)
+        bins = torch.from_numpy(bin_polarity_events(ev.t, ev.x, ev.y, ev.p, times, H, W)).to(device)
+    if oracle:  # one pose per view, the one the sharp frame was taken at
+        sub = np.asarray(tr.sharp_poses)[:, None]
+        mid = np.asarray(tr.sharp_poses)
+    transfer = tr.transfer or schema.default_transfer(sc.source)
+    blur, ev_transfer = resolve_domains(transfer, blur_space, event_domain)
     bg = sc.camera.background if sc.camera.background is not None else (0.0, 0.0, 0.0)
     to = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
-    images = torch.from_numpy(np.asarray(tr.images)).to(device=device, dtype=dtype) / 255.0
+    images = torch.from_numpy(np.asarray(tr.sharp if oracle else tr.images)).to(device=device, dtype=dtype) / 255.0
     points = None
     if sc.points is not None:
         points = (np.asarray(sc.points.xyz), np.asarray(sc.points.rgb))
@@ -81,4 +112,7 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
         log_knee=float(sc.sensor.log_knee) if sc.sensor.log_knee is not None else DEFAULT_LOG_KNEE,
         camera_centres=mid[:, :3, 3], points=points,
         bounds=None if sc.bounds is None else np.asarray(sc.bounds),
+        transfer=transfer,
+        count_convention=sc.sensor.count_convention or schema.default_count_convention(sc.source, sc.config),
+        raw_matrix=sc.sensor.camera_raw_matrix, blur_space=blur, event_transfer=ev_transfer,
     )

@@ -1,5 +1,16 @@
 """`ev3dgs eval RUN`: novel views (/test) and deblurred training views (/train/sharp poses) against their
-sharp ground truth, with the blurry inputs as the baseline; metrics.json and side-by-side PNGs."""
+sharp ground truth, with the blurry inputs as the baseline; metrics.json and side-by-side PNGs.
+
+Evaluation protocol (E2NeRF / EvaGaussians), metrics.json keys:
+* "blur_view": every training view's sharp frame at mid-exposure (/train/sharp), rendered at the matching pose
+  (/train/sharp_poses): deblurring quality. For an E2NeRF import (no /train/sharp) the /test views that share
+  a training viewpoint (those not in the config's test_novel_views) are the blur views.
+* "novel_view": /test views at poses not trained on (all of /test for our simulated scenes; the odd-indexed
+  ones, config test_novel_views, for E2NeRF imports).
+* "blurry_input": the blurry training frames against the blur-view ground truth (the baseline).
+Each is {"psnr", "ssim", "n", "psnr_per_view"}; "lpips" is null with its reason unless weights are given.
+"variant" is naive / blur-only / blur+event / oracle (TrainConfig.variant). The old keys "test" and
+"train_sharp" are kept as aliases of all /test views and of the /train/sharp blur views."""
 from __future__ import annotations
 
 import json
@@ -75,7 +86,7 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
                          dtype=model.dtype, device=dev)
     reason = lpips_unavailable_reason(lpips_weights) or "LPIPS network evaluation is not implemented yet"
     metrics = {"run": str(run), "scene": cfg.scene,
-               "variant": "naive" if cfg.naive else ("blur+event" if cfg.uses_events else "blur-only"),
+               "variant": cfg.variant, "seed": cfg.seed, "iterations": cfg.iterations,
                "lpips": None, "lpips_reason": reason}
     out_dir = run / "eval"
     if write_images:
@@ -84,13 +95,21 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
         pred = render_views(model, np.asarray(sc.test.poses), K, W, H, bg, cfg.backend)
         truth = np.asarray(sc.test.images)
         metrics["test"] = _scores(pred, truth)
+        novel = sc.config.get("test_novel_views") if sc.train.sharp is None else None
+        if isinstance(novel, list) and all(isinstance(i, int) and 0 <= i < len(pred) for i in novel):
+            blur_ids = [i for i in range(len(pred)) if i not in set(novel)]
+            metrics["novel_view"] = _scores([pred[i] for i in novel], truth[novel])
+            if blur_ids:
+                metrics["blur_view"] = _scores([pred[i] for i in blur_ids], truth[blur_ids])
+        else:
+            metrics["novel_view"] = metrics["test"]
         for i, (p, t) in enumerate(zip(pred, truth)) if write_images else ():
             _png(out_dir / f"test_{i:03d}.png", t, p)
     tr = sc.train
     if tr.sharp is not None and tr.sharp_poses is not None:
         pred = render_views(model, np.asarray(tr.sharp_poses), K, W, H, bg, cfg.backend)
         sharp, blurry = np.asarray(tr.sharp), np.asarray(tr.images)
-        metrics["train_sharp"] = _scores(pred, sharp)
+        metrics["train_sharp"] = metrics["blur_view"] = _scores(pred, sharp)
         metrics["blurry_input"] = _scores(list(blurry), sharp)
         for i, (b, p, s) in enumerate(zip(blurry, pred, sharp)) if write_images else ():
             _png(out_dir / f"train_{i:03d}.png", b, p, s)

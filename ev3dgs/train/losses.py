@@ -8,12 +8,17 @@ Fixes relative to the published E2NeRF / Ev3DGS code (reference notes section 4)
   bounded gradient at exactly 0 (E2NeRF's ``torch.where(x <= 20, x * f, log(x))`` gives NaN gradients at
   black pixels even when they are masked out).
 * The sRGB transfer functions clamp inside their pow branches so gradients are finite for all inputs.
+* ON and OFF counts are compared separately with theta_on * n_on - theta_off * n_off (not a net count with
+  the threshold picked by the sign of the predicted change), with the expectation the scene's count
+  convention implies (random phase: unbiased counts; exact reference: truncated counts, centred).
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -43,17 +48,21 @@ def linear_to_srgb_torch(x: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= _LINEAR_KNEE, low, high)
 
 
-def _gaussian_window(size: int, sigma: float, channels: int, dtype, device) -> torch.Tensor:
+@functools.lru_cache(maxsize=16)
+def _gaussian_taps(size: int, sigma: float, channels: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 1-D Gaussian as horizontal (channels,1,1,size) and vertical (channels,1,size,1) depthwise kernels."""
     g = torch.tensor([math.exp(-((i - size // 2) ** 2) / float(2 * sigma ** 2)) for i in range(size)],
                      dtype=torch.float64)
-    g = g / g.sum()
-    w2 = torch.outer(g, g).to(dtype=dtype, device=device)
-    return w2.expand(channels, 1, size, size).contiguous()
+    g = (g / g.sum()).to(dtype=dtype, device=device)
+    return (g.view(1, 1, 1, size).expand(channels, 1, 1, size).contiguous(),
+            g.view(1, 1, size, 1).expand(channels, 1, size, 1).contiguous())
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Mean SSIM of two (H, W, C) images, as graphdeco 3DGS ``utils/loss_utils.py``: Gaussian window 11,
-    sigma 1.5, per-channel conv2d with zero 'same' padding (padding=5, groups=C), C1=0.01^2, C2=0.03^2."""
+    sigma 1.5, per-channel filtering with zero 'same' padding, C1=0.01^2, C2=0.03^2. The 2-D Gaussian is
+    separable, so it runs as a horizontal then a vertical 1-D pass (22 taps instead of 121 per pixel), over
+    the five maps (a, b, a^2, b^2, ab) stacked in one depthwise call (equal to the 2-D window to rounding)."""
     if a.shape != b.shape:
         raise ValueError(f"ssim needs equal shapes, got {tuple(a.shape)} and {tuple(b.shape)}")
     if a.ndim == 2:
@@ -63,17 +72,15 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: float =
     c = a.shape[-1]
     img1 = a.permute(2, 0, 1).unsqueeze(0)
     img2 = b.permute(2, 0, 1).unsqueeze(0).to(img1.dtype)
-    win = _gaussian_window(window_size, sigma, c, img1.dtype, img1.device)
+    gh, gv = _gaussian_taps(window_size, float(sigma), 5 * c, img1.dtype, img1.device)
     pad = window_size // 2
-
-    def conv(z):
-        return F.conv2d(z, win, padding=pad, groups=c)
-
-    mu1, mu2 = conv(img1), conv(img2)
+    maps = torch.cat([img1, img2, img1 * img1, img2 * img2, img1 * img2], dim=1)
+    blurred = F.conv2d(F.conv2d(maps, gh, padding=(0, pad), groups=5 * c), gv, padding=(pad, 0), groups=5 * c)
+    mu1, mu2, e11, e22, e12 = blurred.split(c, dim=1)
     mu1_sq, mu2_sq, mu1_mu2 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    sigma1_sq = conv(img1 * img1) - mu1_sq
-    sigma2_sq = conv(img2 * img2) - mu2_sq
-    sigma12 = conv(img1 * img2) - mu1_mu2
+    sigma1_sq = e11 - mu1_sq
+    sigma2_sq = e22 - mu2_sq
+    sigma12 = e12 - mu1_mu2
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     ssim_map = ((2 * mu1_mu2 + c1) * (2 * sigma12 + c2)) / ((mu1_sq + mu2_sq + c1) * (sigma1_sq + sigma2_sq + c2))
     return ssim_map.mean()
@@ -96,59 +103,148 @@ def blur_loss(renders: torch.Tensor, target: torch.Tensor, lam: float = 0.2, spa
     return (1.0 - lam) * mse + lam * (1.0 - ssim(avg, target))
 
 
-def log_intensity(renders: torch.Tensor, color_filter: str = "none", knee: float = DEFAULT_LOG_KNEE) -> torch.Tensor:
-    """(K, H, W, 3) sRGB renders -> (K, H, W) safe log of the linear intensity each event pixel sees: the
-    sRGB luminance (``LUMINANCE_WEIGHTS``) for ``color_filter="none"``, or the pixel's own CFA channel for a
-    Bayer pattern ("RGGB", "BGGR", "GRBG", "GBRG"). Same ``safe_log_torch`` and knee as the simulator."""
+# Rec. 601 luma of display values: the grey v2e (OpenCV's BGR2GRAY) and E2NeRF take before their log.
+LUMA_601 = (0.299, 0.587, 0.114)
+_TRANSFERS = ("srgb", "linear", "display")
+
+
+def log_intensity(renders: torch.Tensor, color_filter: str = "none", knee: float = DEFAULT_LOG_KNEE,
+                  transfer: str = "srgb", raw_matrix=None) -> torch.Tensor:
+    """(K, H, W, 3) renders -> (K, H, W) safe log of the intensity each event pixel sees, with the
+    simulator's ``safe_log_torch`` and the scene's knee.
+
+    ``transfer`` (the scene's /train transfer, or the trainer's --event-domain override) says what that is:
+    "srgb": renders are sRGB-encoded, events see linear light: decode (sRGB EOTF) first; "linear": renders
+    are linear light already; "display": events were simulated on display values (v2e on 8-bit frames, as
+    E2NeRF's data): no decode, and the grey is Rec. 601 luma (``LUMA_601``) as v2e/E2NeRF compute it.
+
+    Colour: the sRGB luminance (``LUMINANCE_WEIGHTS``) for ``color_filter="none"``; under a Bayer pattern
+    ("RGGB", "BGGR", "GRBG", "GBRG") the pixel's own channel of camera raw = ``raw_matrix`` @ linear sRGB
+    (``ev3dgs.sensor.camera_raw_matrix(ccm, wb)``, the scene's /events attr camera_raw_matrix; None =
+    identity), as the simulator's ColorFilterArray. For "display" the pixel's own display channel is used
+    (raw_matrix ignored). Computed as a per-pixel weighted sum (no gather/scatter): deterministic."""
     if renders.ndim != 4 or renders.shape[-1] != 3:
         raise ValueError(f"renders must be (K, H, W, 3), got {tuple(renders.shape)}")
-    lin = srgb_to_linear_torch(renders)
+    if transfer not in _TRANSFERS:
+        raise ValueError(f"transfer must be one of {_TRANSFERS}, got {transfer!r}")
+    lin = srgb_to_linear_torch(renders) if transfer == "srgb" else renders
     cf = (color_filter or "none")
     if cf.lower() == "none":
-        w = torch.as_tensor(LUMINANCE_WEIGHTS, dtype=lin.dtype, device=lin.device)
+        w = torch.as_tensor(LUMA_601 if transfer == "display" else LUMINANCE_WEIGHTS, dtype=lin.dtype,
+                            device=lin.device)
         inten = (lin * w).sum(dim=-1)
     elif cf.upper() in _BAYER:
-        k, h, wd, _ = lin.shape
-        idx = torch.as_tensor(cfa_channels(cf.upper(), h, wd), dtype=torch.long, device=lin.device)
-        inten = torch.gather(lin, -1, idx[None, :, :, None].expand(k, h, wd, 1)).squeeze(-1)
+        _, h, wd, _ = lin.shape
+        m = np.eye(3) if raw_matrix is None or transfer == "display" else np.asarray(raw_matrix, np.float64)
+        if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+            raise ValueError(f"raw_matrix must be a finite 3x3 matrix, got {m.tolist()}")
+        w_px = torch.as_tensor(m[cfa_channels(cf.upper(), h, wd)], dtype=lin.dtype, device=lin.device)  # (H,W,3)
+        inten = (lin * w_px).sum(dim=-1)
     else:
         raise ValueError(f"color_filter must be 'none' or a Bayer pattern {sorted(_BAYER)}, got {color_filter!r}")
     return safe_log_torch(inten, knee)
 
 
-def event_loss(log_l: torch.Tensor, targets: torch.Tensor, pairs: Sequence[tuple[int, int]],
-               theta_pos, theta_neg) -> torch.Tensor:
-    """Mean squared error between predicted and observed signed event counts over all pairs and pixels.
+COUNT_CONVENTIONS = ("random_phase", "exact_reference")
 
-    For pair (k1, k2): predicted = (log_l[k2] - log_l[k1]) / theta, with theta = theta_pos where the change
-    is positive and theta_neg elsewhere (``torch.where``, so 0-d tensors requiring grad work as learnable
-    thresholds; python floats work too).
 
-    The target is the RAW signed count, with no +-0.5 offset. E2NeRF adds +-0.5 because it assumes the
-    pixel's reference was reset exactly at the first pose, so n observed events mean a change in
-    [n, n+1) thresholds. Our simulator's per-pixel reference carries its residual across pose boundaries
-    (it is not reset at sub-pose times), so the residual at k1 is ~uniform in one threshold and
-    E[count] = delta/theta exactly: the unbiased target is the count itself.
-
-    Returns a non-negative scalar that the trainer must ADD to the blur loss (the published Ev3DGS
-    ``loss = image_loss - event_loss`` subtracted it, rewarding wrong event predictions).
-    """
-    if log_l.ndim != 3 or targets.ndim != 3:
-        raise ValueError("log_l must be (K, H, W) and targets (P, H, W)")
-    if len(pairs) != targets.shape[0]:
-        raise ValueError(f"{len(pairs)} pairs but {targets.shape[0]} target maps")
+def _thetas(theta_pos, theta_neg, like: torch.Tensor):
     for th in (theta_pos, theta_neg):
         if not torch.is_tensor(th) and not float(th) > 0:
             raise ValueError(f"thresholds must be positive, got {th!r}")
+    tp = torch.as_tensor(theta_pos, dtype=like.dtype, device=like.device)
+    tn = torch.as_tensor(theta_neg, dtype=like.dtype, device=like.device)
+    return tp, tn
+
+
+def _scaled_mse(residual: torch.Tensor, tp: torch.Tensor, tn: torch.Tensor) -> torch.Tensor:
+    # residual in log units over the mean threshold (detached: a constant of the step, so a learned threshold
+    # cannot shrink the loss by growing the scale): the error in "events", as E2NeRF's (delta/theta - n)
+    scale = (0.5 * (tp + tn)).detach()
+    return torch.mean((residual / scale) ** 2)
+
+
+def expected_log_change(counts: torch.Tensor, theta_pos, theta_neg,
+                        convention: str = "random_phase") -> torch.Tensor:
+    """(K, 2, H, W) cumulative ON/OFF counts since the exposure's first pose (``events.pose_counts``) ->
+    (K, H, W) expected log-intensity change since that pose, E[L_k - L_0 | counts]:
+
+    * "random_phase" (a running sensor; our simulator's default): theta_on * C_on - theta_off * C_off.
+      The reference moves by +theta_on per ON and -theta_off per OFF event, so this is L_k - L_0 up to the
+      change of the residual (signal - reference), whose expectation is the same at both poses when the
+      pixel last moved the same way before each: unbiased for up-and-down paths inside a bin (where a net
+      count with one threshold is not). A reversal between the poses shifts it by half the dead band,
+      (theta_on + theta_off) / 2: the sensor's hysteresis, which counts alone cannot reveal.
+    * "exact_reference" (the reference equals L_0 at the exposure start: v2e/ESIM restarted per view, E2NeRF's
+      data): after the last event the signal lies between the reference and the next threshold, so the
+      change is in [X, X + theta_on) after an upward move and (X - theta_off, X] after a downward one, X =
+      theta_on * C_on - theta_off * C_off; the expectation (uniform inside) is X + theta_on / 2 where X > 0,
+      X - theta_off / 2 where X < 0, and 0 where the pixel fired nothing or its events cancel (a static
+      pixel: most of them). For one monotone change this is E2NeRF's count +- 0.5; unlike E2NeRF's per-pair
+      +-0.5 it is applied to the change since the reference, so pairs (k1 > 0, k2) get the difference of two
+      such centres.
+    """
+    if counts.ndim != 4 or counts.shape[1] != 2:
+        raise ValueError(f"counts must be (K, 2, H, W), got {tuple(counts.shape)}")
+    if convention not in COUNT_CONVENTIONS:
+        raise ValueError(f"count convention must be one of {COUNT_CONVENTIONS}, got {convention!r}")
+    c = counts.to(torch.float32 if not torch.is_floating_point(counts) else counts.dtype)
+    tp, tn = _thetas(theta_pos, theta_neg, c)
+    x = tp * c[:, 0] - tn * c[:, 1]
+    if convention == "random_phase":
+        return x
+    zero = torch.zeros((), dtype=x.dtype, device=x.device)
+    return x + torch.where(x > 0, 0.5 * tp, torch.where(x < 0, -0.5 * tn, zero))
+
+
+def pose_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple[int, int]],
+                    theta_pos, theta_neg, convention: str = "random_phase") -> torch.Tensor:
+    """The trainer's event loss. (K, H, W) log intensities at the sub-poses and (K, 2, H, W) cumulative ON/OFF
+    counts since pose 0 -> mean over pairs and pixels of
+
+        ((log_l[k2] - log_l[k1]) - (E_k2 - E_k1)) ** 2 / theta_mean ** 2,   E = expected_log_change(counts)
+
+    theta_mean = (theta_on + theta_off) / 2, detached. The residual is in log units (linear in the prediction,
+    so one convex quadratic whatever the sign of the change: no threshold picked by the sign of a prediction),
+    divided by the mean threshold so the loss counts events: with theta_on = theta_off = theta and random-phase
+    data it is exactly the old mean((delta / theta - n) ** 2), and --event-weight keeps its meaning (weight
+    per squared event). Thresholds may be 0-d tensors requiring grad (learnable). Non-negative: the trainer
+    ADDS it to the blur loss (the published Ev3DGS subtracted it)."""
+    if log_l.ndim != 3 or counts.ndim != 4 or counts.shape[0] != log_l.shape[0]:
+        raise ValueError(f"log_l must be (K, H, W) and counts (K, 2, H, W), got {tuple(log_l.shape)} and "
+                         f"{tuple(counts.shape)}")
+    tp, tn = _thetas(theta_pos, theta_neg, log_l)
+    if len(pairs) == 0:
+        return log_l.sum() * 0.0
+    d = log_l - expected_log_change(counts.to(log_l.dtype), tp, tn, convention)
+    idx = torch.as_tensor([tuple(pr) for pr in pairs], dtype=torch.long, device=log_l.device)
+    # index_select, not d[idx]: the backward of advanced indexing with repeated indices (every pose is in
+    # several pairs) is index_put_(accumulate=True), whose multi-threaded CPU kernel adds in a racy order;
+    # index_select's backward (index_add_) adds slice by slice in index order: bitwise reproducible
+    residual = d.index_select(0, idx[:, 1]) - d.index_select(0, idx[:, 0])
+    return _scaled_mse(residual, tp, tn)
+
+
+def event_loss(log_l: torch.Tensor, targets: torch.Tensor, pairs: Sequence[tuple[int, int]],
+               theta_pos, theta_neg) -> torch.Tensor:
+    """The event loss on per-pair counts (random-phase data; the trainer uses ``pose_event_loss``, which also
+    handles exact-reference data). ``targets``: (P, 2, H, W) ON/OFF counts between the poses of each pair
+    (``pair_targets`` of ``bin_polarity_events`` bins), or (P, H, W) net signed counts (read as n ON events
+    where n > 0, |n| OFF events where n < 0: what a net count can say). Loss: mean over pairs and pixels of
+    ((log_l[k2] - log_l[k1]) - (theta_on * n_on - theta_off * n_off)) ** 2 / theta_mean ** 2 (see
+    ``pose_event_loss``). Non-negative, to be ADDED to the blur loss."""
+    if log_l.ndim != 3 or targets.ndim not in (3, 4) or (targets.ndim == 4 and targets.shape[1] != 2):
+        raise ValueError("log_l must be (K, H, W) and targets (P, H, W) or (P, 2, H, W)")
+    if len(pairs) != targets.shape[0]:
+        raise ValueError(f"{len(pairs)} pairs but {targets.shape[0]} target maps")
+    tp, tn = _thetas(theta_pos, theta_neg, log_l)
     if len(pairs) == 0:
         return log_l.sum() * 0.0
     idx = torch.as_tensor([tuple(pr) for pr in pairs], dtype=torch.long, device=log_l.device)
-    # index_select, not log_l[idx]: the backward of advanced indexing with repeated indices (every pose is in
-    # several pairs) is index_put_(accumulate=True), whose multi-threaded CPU kernel adds in a racy order;
-    # index_select's backward (index_add_) adds slice by slice in index order: bitwise reproducible
-    delta = log_l.index_select(0, idx[:, 1]) - log_l.index_select(0, idx[:, 0])
-    tp = torch.as_tensor(theta_pos, dtype=delta.dtype, device=delta.device)
-    tn = torch.as_tensor(theta_neg, dtype=delta.dtype, device=delta.device)
-    theta = torch.where(delta > 0, tp, tn)
-    pred = delta / theta
-    return torch.mean((pred - targets.to(pred.dtype)) ** 2)
+    delta = log_l.index_select(0, idx[:, 1]) - log_l.index_select(0, idx[:, 0])  # see pose_event_loss
+    tg = targets.to(delta.dtype)
+    if tg.ndim == 3:
+        expected = tp * tg.clamp(min=0) - tn * (-tg).clamp(min=0)
+    else:
+        expected = tp * tg[:, 0] - tn * tg[:, 1]
+    return _scaled_mse(delta - expected, tp, tn)

@@ -1,7 +1,8 @@
 """The training loop: blur rendering loss over b+1 poses of each exposure, plus the event rendering loss.
 
     loss = (1 - lambda) * MSE(mean_k render_k, blurry) + lambda * (1 - SSIM(...))
-         + omega * MSE((log L_k2 - log L_k1) / theta, signed events between t_k1 and t_k2)
+         + omega * mean(((log L_k2 - log L_k1) - E[change | ON, OFF counts]) / theta_mean) ** 2
+         (losses.pose_event_loss: theta_on * n_on - theta_off * n_off, per the scene's count convention)
 
 (added, not subtracted as in the published Ev3DGS code; the binned events are never modified in place.)
 
@@ -36,8 +37,8 @@ from ..splat.strategy import DefaultStrategy
 from .checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .data import TrainData, load_train_data
-from .events import pair_list, pair_targets
-from .losses import blur_loss, event_loss, log_intensity
+from .events import pair_list, pose_counts
+from .losses import blur_loss, log_intensity, pose_event_loss
 from .metrics import psnr
 
 
@@ -94,7 +95,8 @@ class Trainer:
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
-        self.data = load_train_data(cfg.scene, 1 if cfg.naive else cfg.subposes, device=self.device)
+        self.data = load_train_data(cfg.scene, 1 if cfg.naive or cfg.oracle else cfg.subposes, device=self.device,
+                                    blur_space=cfg.blur_space, event_domain=cfg.event_domain, oracle=cfg.oracle)
         self.model = init_model(self.data, cfg, self.device)
         self.optimizers = self.model.make_optimizers(scene_scale=self.data.scene_scale)
         self.means_lr0 = self.optimizers["means"].param_groups[0]["lr"]
@@ -146,23 +148,26 @@ class Trainer:
             self.model.active_sh_degree = min(self.model.sh_degree, self.model.active_sh_degree + 1)
         v = self._next_view()
         poses = data.mid_viewmats[v:v + 1] if cfg.naive else data.viewmats[v]
-        renders, infos = [], []
-        for pose in poses:
-            image, _, info = self.render(pose)
+        # the b+1 sub-poses in one batched call (one projection, one binning, one kernel over (camera, tile));
+        # the densification statistics still count every camera's render separately (info["n_cameras"])
+        if self.cfg.backend == "cpu" or (self.cfg.backend == "auto" and self.device.type == "cpu"):
+            stack, _, info = self.render(poses)
+            infos = [info]
+        else:  # reference / gsplat: one render per pose, each with its own means2d for the statistics
+            renders, infos = zip(*[(r[0], r[2]) for r in (self.render(pose) for pose in poses)])
+            stack = torch.stack(renders)
+        for info in infos:
             info["grad_scale"] = float(len(poses))  # each of b+1 renders gets ~1/(b+1) of the gradient
             self.strategy.step_pre_backward(info)
-            renders.append(image)
-            infos.append(info)
-        stack = torch.stack(renders)
         target = data.images[v]
-        l_blur = blur_loss(stack, target, cfg.ssim_lambda, cfg.blur_space)
+        l_blur = blur_loss(stack, target, cfg.ssim_lambda, data.blur_space)  # "auto" resolved from the scene
         loss = l_blur
         l_event = torch.zeros((), device=self.device)
         if self.use_events:
             pairs = pair_list(len(poses), cfg.event_pairs or "all", self.generator)
-            targets = pair_targets(data.bins[v], pairs)
-            log_l = log_intensity(stack, data.color_filter, data.log_knee)
-            l_event = event_loss(log_l, targets, pairs, self.thresholds["pos"].exp(), self.thresholds["neg"].exp())
+            log_l = log_intensity(stack, data.color_filter, data.log_knee, data.event_transfer, data.raw_matrix)
+            l_event = pose_event_loss(log_l, pose_counts(data.bins[v]), pairs, self.thresholds["pos"].exp(),
+                                      self.thresholds["neg"].exp(), data.count_convention)
             loss = loss + cfg.event_weight * l_event
         loss.backward()
         self._guard(loss, l_blur, l_event)

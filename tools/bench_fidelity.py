@@ -1,0 +1,233 @@
+"""Table-I-style fidelity benchmark (issue 13): the built-in scenes x {naive, blur-only, blur+event, sharp
+oracle} x seeds, scored E2NeRF/EvaGaussians-style on blur views (each training view's sharp mid-exposure frame,
+rendered at its pose) and novel views (/test), PSNR and SSIM, mean +- std over seeds.
+
+    python tools/bench_fidelity.py            # 4 scenes, 24+8 views at 128x96, 17 sub-frames, 3000 steps, 3 seeds
+    python tools/bench_fidelity.py --quick    # lego, 1 seed, 12+4 views at 96x72, 400 steps (<= 10 min, 2 cores)
+
+Datasets are made once with make-dataset (Blender) into a cache folder (--cache, default
+tools/results/fidelity_cache; a scene whose file exists is reused) with the dataset seed 0 for every training
+seed, so the seeds measure the trainer's variance. Training runs in-process, one variant after the other
+(TrainConfig defaults apart from iterations, init_points and seed: blur space, event log domain and count
+convention come from the scene file). Writes JSON (every run's metrics.json plus the summary) and a plot
+(PSNR per variant per scene, error bars = std over seeds) into tools/results/, and prints the table.
+Runs are resumable: a run folder with a metrics.json from the same settings is not trained again.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ev3dgs.sim.dataset import make_dataset  # noqa: E402
+from ev3dgs.sim.scenes import builtin_scenes, load_scene, resolve_render  # noqa: E402
+from ev3dgs.train.config import TrainConfig  # noqa: E402
+from ev3dgs.train.evaluate import evaluate  # noqa: E402
+from ev3dgs.train.trainer import Trainer  # noqa: E402
+
+VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict(),
+            "oracle": dict(oracle=True)}
+FULL = dict(scenes=None, seeds=3, iterations=3000, render=dict(width=128, height=96, views=24, test_views=8,
+                                                                subframes=17, samples=16))
+QUICK = dict(scenes=["lego"], seeds=1, iterations=400, render=dict(width=96, height=72, views=12, test_views=4,
+                                                                    subframes=17, samples=8))
+VIEWS = ("blur_view", "novel_view")
+
+
+def build_scene(name: str, render: dict, cache: Path, quiet: bool) -> Path:
+    spec = load_scene(name)
+    r = resolve_render(spec, **render)
+    tag = f"{spec.name}_{r.width}x{r.height}_v{r.views}t{r.test_views}s{r.subframes}p{r.samples}"
+    path = cache / f"{tag}.h5"
+    if not path.exists():
+        t = time.perf_counter()
+        make_dataset(spec, r, path, seed=0, quiet=quiet)
+        print(f"  dataset {tag}: {time.perf_counter() - t:.0f} s", flush=True)
+    return path
+
+
+def run_one(scene: Path, variant: str, seed: int, iterations: int, init_points: int, out: Path) -> dict:
+    cfg = TrainConfig(scene=str(scene), iterations=iterations, init_points=init_points, seed=seed,
+                      checkpoint_every=max(iterations, 1), **VARIANTS[variant])
+    done = out / "metrics.json"
+    if done.exists() and (out / "config.json").exists():
+        old = TrainConfig.load(out / "config.json")
+        if not old.differences(cfg, ignore=("checkpoint_every", "threads")):
+            return json.loads(done.read_text())
+    t = time.perf_counter()
+    Trainer(cfg, out, quiet=True).fit()
+    seconds = time.perf_counter() - t
+    m = evaluate(out, write_images=False)
+    m["train_seconds"] = seconds
+    done.write_text(json.dumps(m, indent=2))
+    return m
+
+
+def summarise(runs: list[dict]) -> dict:
+    """{scene: {variant: {view: {"psnr": [mean, std], "ssim": [mean, std], "seeds": n}}}} plus "average"
+    over scenes (mean of the per-scene means; std = std over seeds of the scene-averaged value)."""
+    table: dict = {}
+    for r in runs:
+        cell = table.setdefault(r["scene"], {}).setdefault(r["variant"], {})
+        for view in VIEWS:
+            if view in r["metrics"]:
+                for k in ("psnr", "ssim"):
+                    cell.setdefault(view, {}).setdefault(k, {})[r["seed"]] = r["metrics"][view][k]
+    out: dict = {}
+    for scene, variants in table.items():
+        for variant, views in variants.items():
+            for view, ks in views.items():
+                for k, by_seed in ks.items():
+                    v = np.array(list(by_seed.values()))
+                    out.setdefault(scene, {}).setdefault(variant, {}).setdefault(view, {})[k] = \
+                        [float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0]
+                    out[scene][variant][view]["seeds"] = len(v)
+    scenes = list(table)
+    avg: dict = {}
+    for variant in VARIANTS:
+        for view in VIEWS:
+            for k in ("psnr", "ssim"):
+                per_seed = {}
+                for s in scenes:
+                    for seed, val in table[s].get(variant, {}).get(view, {}).get(k, {}).items():
+                        per_seed.setdefault(seed, []).append(val)
+                full = [np.mean(v) for v in per_seed.values() if len(v) == len(scenes)]
+                if full:
+                    a = np.array(full)
+                    avg.setdefault(variant, {}).setdefault(view, {})[k] = \
+                        [float(a.mean()), float(a.std(ddof=1)) if len(a) > 1 else 0.0]
+    out["average"] = avg
+    return out
+
+
+def targets(avg: dict) -> dict:
+    """The issue-13 targets on the scene average (None where a variant is missing)."""
+    def get(v, view):
+        return avg.get(v, {}).get(view, {}).get("psnr")
+    be, nv, bo, orc = (get(v, "blur_view") for v in ("blur+event", "naive", "blur-only", "oracle"))
+    res = {}
+    if be and nv:
+        res["blur_view: blur+event - naive >= 3 dB"] = round(be[0] - nv[0], 2)
+    if be and bo:
+        diff = be[0] - bo[0]
+        res["blur_view: blur+event - blur-only >= 0.5 dB"] = round(diff, 2)
+        res["  ... and > 2 std over seeds"] = bool(diff > 2 * max(be[1], bo[1]) and be[1] + bo[1] > 0)
+    for view in VIEWS:
+        b, o = get("blur+event", view), get("oracle", view)
+        if b and o:
+            res[f"{view}: oracle - blur+event <= 1 dB"] = round(o[0] - b[0], 2)
+    return res
+
+
+def format_table(summary: dict) -> str:
+    rows = [f"{'scene':10s} {'variant':11s} {'blur PSNR':>14s} {'blur SSIM':>9s} {'novel PSNR':>14s} {'novel SSIM':>10s}"]
+    for scene, variants in summary.items():
+        for variant in VARIANTS:
+            c = variants.get(variant)
+            if not c:
+                continue
+            cols = []
+            for view in VIEWS:
+                p, s = c.get(view, {}).get("psnr"), c.get(view, {}).get("ssim")
+                cols.append(f"{p[0]:7.2f} ± {p[1]:4.2f}" if p else f"{'-':>14s}")
+                cols.append(f"{s[0]:9.4f}" if s else f"{'-':>9s}")
+            rows.append(f"{scene:10s} {variant:11s} {cols[0]:>14s} {cols[1]:>9s} {cols[2]:>14s} {cols[3]:>10s}")
+    return "\n".join(rows)
+
+
+def plot(summary: dict, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(summary)
+    fig, axes = plt.subplots(1, 2, figsize=(max(6, 2.2 * len(scenes) + 2), 3.4), sharey=False)
+    width = 0.8 / len(VARIANTS)
+    for ax, view in zip(axes, VIEWS):
+        for i, variant in enumerate(VARIANTS):
+            xs, ys, es = [], [], []
+            for j, s in enumerate(scenes):
+                p = summary[s].get(variant, {}).get(view, {}).get("psnr")
+                if p:
+                    xs.append(j + (i - (len(VARIANTS) - 1) / 2) * width)
+                    ys.append(p[0])
+                    es.append(p[1])
+            ax.bar(xs, ys, width, yerr=es, capsize=2, label=variant)
+        ax.set_xticks(range(len(scenes)))
+        ax.set_xticklabels(scenes, fontsize=8)
+        ax.set_title(view.replace("_", " ") + " PSNR (dB)", fontsize=9)
+        lo = min((c.get(view, {}).get("psnr", [99])[0] for s in scenes for c in summary[s].values()), default=0)
+        ax.set_ylim(max(0, lo - 3), None)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="lego, one seed, small size (<= 10 minutes on 2 cores)")
+    ap.add_argument("--scenes", nargs="+", help="built-in scene names (default: all built-in scenes)")
+    ap.add_argument("--seeds", type=int, help="training seeds 0..N-1 (default 3; --quick 1)")
+    ap.add_argument("--iterations", type=int, help="training steps per run (default 3000; --quick 400)")
+    ap.add_argument("--init-points", type=int, default=5000, help="random initial Gaussians (default %(default)s)")
+    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
+    ap.add_argument("--cache", type=Path, default=ROOT / "tools/results/fidelity_cache",
+                    help="datasets and run folders (default %(default)s)")
+    ap.add_argument("--json", type=Path, help="default tools/results/bench_fidelity[_quick].json")
+    ap.add_argument("--plot", type=Path, help="default tools/results/bench_fidelity[_quick].png")
+    ap.add_argument("--quiet", action="store_true")
+    a = ap.parse_args(argv)
+    preset = QUICK if a.quick else FULL
+    scenes = a.scenes or preset["scenes"] or builtin_scenes()
+    seeds = a.seeds or preset["seeds"]
+    iterations = a.iterations or preset["iterations"]
+    suffix = "_quick" if a.quick else ""
+    js = a.json or ROOT / f"tools/results/bench_fidelity{suffix}.json"
+    png = a.plot or ROOT / f"tools/results/bench_fidelity{suffix}.png"
+    a.cache.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    runs = []
+    for name in scenes:
+        path = build_scene(name, preset["render"], a.cache, a.quiet)
+        for seed in range(seeds):
+            for variant in a.variants:
+                out = a.cache / "runs" / f"{path.stem}" / f"{variant.replace('+', '_')}_s{seed}"
+                t = time.perf_counter()
+                m = run_one(path, variant, seed, iterations, a.init_points, out)
+                runs.append({"scene": name, "variant": variant, "seed": seed, "metrics": m})
+                if not a.quiet:
+                    bv, nv = m.get("blur_view", {}).get("psnr"), m.get("novel_view", {}).get("psnr")
+                    print(f"  {name} {variant:10s} seed {seed}: blur view {bv:.2f} dB, novel view {nv:.2f} dB "
+                          f"({time.perf_counter() - t:.0f} s)", flush=True)
+    summary = summarise(runs)
+    result = {"settings": {"quick": a.quick, "scenes": scenes, "seeds": seeds, "iterations": iterations,
+                           "init_points": a.init_points, "render": preset["render"], "dataset_seed": 0,
+                           "variants": a.variants, "variant_overrides": {k: VARIANTS[k] for k in a.variants}},
+              "summary": summary, "targets": targets(summary["average"]),
+              "blurry_input": {r["scene"]: r["metrics"].get("blurry_input", {}).get("psnr") for r in runs},
+              "runs": [{k: v for k, v in r.items() if k != "metrics"} |
+                       {"metrics": {k: r["metrics"].get(k) for k in (*VIEWS, "blurry_input", "train_seconds")}}
+                       for r in runs],
+              "seconds": time.perf_counter() - t0}
+    js.parent.mkdir(parents=True, exist_ok=True)
+    js.write_text(json.dumps(result, indent=2))
+    plot({k: v for k, v in summary.items() if k != "average"}, png)
+    print(format_table(summary))
+    for k, v in result["targets"].items():
+        print(f"{k}: {v}")
+    print(f"done in {result['seconds']:.0f} s -> {js}, {png}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
