@@ -34,7 +34,7 @@ from ..events import Events
 from . import jaer
 from .aps import FrameBuilder
 from .checks import MonotonicFilter, Wrap32
-from .types import AedatError, ImuData, RecordingReader, StreamInfo, Triggers
+from .types import AedatError, events_in_window, ImuData, RecordingReader, StreamInfo, Triggers
 
 MAGIC = b"#!AER-DAT2.0"
 END_OF_HEADER = b"#End Of ASCII Header"
@@ -201,14 +201,7 @@ class Aedat2Reader(RecordingReader):
             todo = parts
         else:                                      # a large file: decode only the chunks that overlap [lo, hi)
             todo = (ch.events for ch in self._scan(False, window=(lo, hi)))
-        for ev in todo:
-            if not len(ev) or ev.t[-1] < lo or ev.t[0] >= hi:
-                continue
-            if start_us is not None or end_us is not None:
-                a, b = np.searchsorted(ev.t, lo), np.searchsorted(ev.t, hi)
-                ev = Events(ev.t[a:b], ev.x[a:b], ev.y[a:b], ev.p[a:b])
-            if len(ev):
-                yield ev
+        yield from events_in_window(todo, lo, hi, start_us is not None or end_us is not None)
 
     def frames(self, stream=None):
         self._check_stream(stream, "frames")

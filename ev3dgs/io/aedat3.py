@@ -37,7 +37,7 @@ import numpy as np
 
 from ..events import Events
 from .checks import MonotonicFilter, Wrap32, imu_plausible
-from .types import AedatError, FrameData, ImuData, RecordingReader, StreamInfo, Triggers
+from .types import AedatError, events_in_window, FrameData, ImuData, RecordingReader, StreamInfo, Triggers
 
 MAGIC = b"#!AER-DAT3.1"
 END = b"#!END-HEADER"
@@ -275,14 +275,7 @@ class Aedat3Reader(RecordingReader):
             todo = self._ev_cache[src]
         else:
             todo = self._decode_events(src, (lo, hi))
-        for ev in todo:
-            if not len(ev) or ev.t[-1] < lo or ev.t[0] >= hi:
-                continue
-            if start_us is not None or end_us is not None:
-                a, b = np.searchsorted(ev.t, lo), np.searchsorted(ev.t, hi)
-                ev = Events(ev.t[a:b], ev.x[a:b], ev.y[a:b], ev.p[a:b])
-            if len(ev):
-                yield ev
+        yield from events_in_window(todo, lo, hi, start_us is not None or end_us is not None)
 
     def _decode_events(self, src: int, window):
         """Decode the polarity packets of one source (window=(lo, hi): only packets whose time range, known from

@@ -81,6 +81,21 @@ class Triggers:
         return len(self.t)
 
 
+def events_in_window(parts, lo: int, hi: int, sliced: bool):
+    """Yield the non-empty parts of a time-sorted Events stream with lo <= t < hi (each part sliced by binary
+    search when `sliced`, i.e. when the caller asked for a window; parts wholly outside are skipped)."""
+    from ..events import Events
+
+    for ev in parts:
+        if not len(ev) or ev.t[-1] < lo or ev.t[0] >= hi:
+            continue
+        if sliced:
+            a, b = np.searchsorted(ev.t, lo), np.searchsorted(ev.t, hi)
+            ev = Events(ev.t[a:b], ev.x[a:b], ev.y[a:b], ev.p[a:b])
+        if len(ev):
+            yield ev
+
+
 class RecordingReader:
     """The interface every format's reader implements (aedat4.Aedat4Reader, aedat3.Aedat3Reader,
     aedat2.Aedat2Reader). Use as a context manager. `stream` arguments take a stream id or name; None picks

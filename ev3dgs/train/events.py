@@ -44,6 +44,40 @@ def sub_pose_times(exposure: np.ndarray, n_poses: int) -> np.ndarray:
     return out.astype(np.int64)
 
 
+def _checked(t, x, y, p, times):
+    """The binning functions' inputs as arrays, validated (never copied when already arrays, never written)."""
+    times = np.asarray(times, dtype=np.int64)
+    if times.ndim != 2 or times.shape[1] < 2:
+        raise ValueError(f"times must have shape (N, K) with K >= 2, got {times.shape}")
+    if np.any(np.diff(times, axis=1) < 0):
+        raise ValueError("times must be non-decreasing along each view")
+    t, x, y, p = (np.asarray(a) for a in (t, x, y, p))
+    if not (len(t) == len(x) == len(y) == len(p)):
+        raise ValueError("t, x, y and p must have the same length")
+    return t, x, y, p, times
+
+
+def _view_chunks(t, x, y, p, times, height: int, width: int):
+    """Yield (v, b, pix, p) per chunk of each view's events: b the sub-pose bin of each event (last bin
+    closed), pix = y * width + x, p its polarities. Per view a binary search finds the window; chunks of
+    _CHUNK events keep memory bounded."""
+    if len(t) == 0:
+        return
+    n_bins = times.shape[1] - 1
+    lo = np.searchsorted(t, times[:, 0], side="left")
+    hi = np.searchsorted(t, times[:, -1], side="right")
+    for v, row in enumerate(times):
+        for i in range(int(lo[v]), int(hi[v]), _CHUNK):
+            j = min(i + _CHUNK, int(hi[v]))
+            xs = x[i:j].astype(np.int64)
+            ys = y[i:j].astype(np.int64)
+            if xs.size and (xs.max() >= width or ys.max() >= height or xs.min() < 0 or ys.min() < 0):
+                raise ValueError(f"event coordinates outside a {width}x{height} sensor")
+            b = np.searchsorted(row, t[i:j], side="right") - 1
+            np.clip(b, 0, n_bins - 1, out=b)  # t == times[v, K-1] -> last bin
+            yield v, b, ys * width + xs, p[i:j]
+
+
 def bin_signed_events(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, times: np.ndarray,
                       height: int, width: int) -> np.ndarray:
     """Signed event counts between consecutive sub-pose times.
@@ -54,42 +88,14 @@ def bin_signed_events(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray
     Vectorised per view (binary search for the window, bincount on flattened (bin, y, x) indices), in chunks,
     so memory stays bounded for very long streams. Inputs are never written to.
     """
-    times = np.asarray(times, dtype=np.int64)
-    if times.ndim != 2 or times.shape[1] < 2:
-        raise ValueError(f"times must have shape (N, K) with K >= 2, got {times.shape}")
-    if np.any(np.diff(times, axis=1) < 0):
-        raise ValueError("times must be non-decreasing along each view")
-    t = np.asarray(t)
-    x = np.asarray(x)
-    y = np.asarray(y)
-    p = np.asarray(p)
-    if not (len(t) == len(x) == len(y) == len(p)):
-        raise ValueError("t, x, y and p must have the same length")
+    t, x, y, p, times = _checked(t, x, y, p, times)
     height, width = int(height), int(width)
-    n_views, k = times.shape
-    n_bins = k - 1
-    plane = height * width
-    out = np.zeros((n_views, n_bins, height, width), dtype=np.float32)
-    if len(t) == 0:
-        return out
-    lo = np.searchsorted(t, times[:, 0], side="left")
-    hi = np.searchsorted(t, times[:, -1], side="right")
-    for v in range(n_views):
-        acc = np.zeros(n_bins * plane, dtype=np.float64)
-        row = times[v]
-        for i in range(int(lo[v]), int(hi[v]), _CHUNK):
-            j = min(i + _CHUNK, int(hi[v]))
-            ts = t[i:j]
-            xs = x[i:j].astype(np.int64)
-            ys = y[i:j].astype(np.int64)
-            if xs.size and (xs.max() >= width or ys.max() >= height or xs.min() < 0 or ys.min() < 0):
-                raise ValueError(f"event coordinates outside a {width}x{height} sensor")
-            b = np.searchsorted(row, ts, side="right") - 1
-            np.clip(b, 0, n_bins - 1, out=b)  # t == times[v, K-1] -> last bin
-            flat = (b * height + ys) * width + xs
-            acc += np.bincount(flat, weights=p[i:j].astype(np.float64), minlength=n_bins * plane)
-        out[v] = acc.reshape(n_bins, height, width)
-    return out
+    n_views, n_bins, plane = len(times), times.shape[1] - 1, height * width
+    # counts are integers far below 2^24: float32 accumulation is exact
+    out = np.zeros((n_views, n_bins * plane), dtype=np.float32)
+    for v, b, pix, ps in _view_chunks(t, x, y, p, times, height, width):
+        out[v] += np.bincount(b * plane + pix, weights=ps.astype(np.float64), minlength=n_bins * plane)
+    return out.reshape(n_views, n_bins, height, width)
 
 
 def bin_polarity_events(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, times: np.ndarray,
@@ -99,39 +105,14 @@ def bin_polarity_events(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarr
     with times[v,k] <= t < times[v,k+1] (last bin closed), so ``out[:, :, 0] - out[:, :, 1]`` is
     ``bin_signed_events``. Same windows, validation and chunked bincount as ``bin_signed_events``; the inputs
     are never written to."""
-    times = np.asarray(times, dtype=np.int64)
-    if times.ndim != 2 or times.shape[1] < 2:
-        raise ValueError(f"times must have shape (N, K) with K >= 2, got {times.shape}")
-    if np.any(np.diff(times, axis=1) < 0):
-        raise ValueError("times must be non-decreasing along each view")
-    t, x, y, p = (np.asarray(a) for a in (t, x, y, p))
-    if not (len(t) == len(x) == len(y) == len(p)):
-        raise ValueError("t, x, y and p must have the same length")
+    t, x, y, p, times = _checked(t, x, y, p, times)
     height, width = int(height), int(width)
-    n_views, k = times.shape
-    n_bins = k - 1
-    plane = height * width
-    out = np.zeros((n_views, n_bins, 2, height, width), dtype=np.float32)
-    if len(t) == 0:
-        return out
-    lo = np.searchsorted(t, times[:, 0], side="left")
-    hi = np.searchsorted(t, times[:, -1], side="right")
-    for v in range(n_views):
-        acc = np.zeros(n_bins * 2 * plane, dtype=np.int64)
-        row = times[v]
-        for i in range(int(lo[v]), int(hi[v]), _CHUNK):
-            j = min(i + _CHUNK, int(hi[v]))
-            xs = x[i:j].astype(np.int64)
-            ys = y[i:j].astype(np.int64)
-            if xs.size and (xs.max() >= width or ys.max() >= height or xs.min() < 0 or ys.min() < 0):
-                raise ValueError(f"event coordinates outside a {width}x{height} sensor")
-            b = np.searchsorted(row, t[i:j], side="right") - 1
-            np.clip(b, 0, n_bins - 1, out=b)  # t == times[v, K-1] -> last bin
-            off = (p[i:j] < 0).astype(np.int64)  # polarity plane: 0 = ON, 1 = OFF
-            flat = ((b * 2 + off) * height + ys) * width + xs
-            acc += np.bincount(flat, minlength=n_bins * 2 * plane)
-        out[v] = acc.reshape(n_bins, 2, height, width)
-    return out
+    n_views, n_bins, plane = len(times), times.shape[1] - 1, height * width
+    out = np.zeros((n_views, n_bins * 2 * plane), dtype=np.float32)  # integer counts < 2^24: exact
+    for v, b, pix, ps in _view_chunks(t, x, y, p, times, height, width):
+        off = (ps < 0).astype(np.int64)  # polarity plane: 0 = ON, 1 = OFF
+        out[v] += np.bincount((b * 2 + off) * plane + pix, minlength=n_bins * 2 * plane)
+    return out.reshape(n_views, n_bins, 2, height, width)
 
 
 def pose_counts(bins: torch.Tensor) -> torch.Tensor:
