@@ -19,3 +19,12 @@ class InputError(Ev3dgsError):
 
 class SchemaWarning(UserWarning):
     """A scene file follows the schema and can train, but something in it is odd; the message names the path."""
+
+
+def raised_in_h5py(e: BaseException) -> bool:
+    """True if `e` was raised inside h5py (its errors are OSError, KeyError, RuntimeError, ValueError... with
+    HDF5's text): a damaged or unwritable file, not a bug of ours."""
+    tb, last = e.__traceback__, None
+    while tb is not None:
+        last, tb = tb.tb_frame.f_code.co_filename, tb.tb_next
+    return last is not None and "h5py" in last.replace("\\", "/").split("/")[:-1]

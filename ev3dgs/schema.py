@@ -20,7 +20,7 @@ from typing import Any, Iterator
 import h5py
 import numpy as np
 
-from .errors import SchemaError
+from .errors import SchemaError, raised_in_h5py
 from .events import Events
 
 FORMAT = "ev3dgs-scene"
@@ -354,17 +354,10 @@ def _open(path: str | os.PathLike) -> Iterator[h5py.File]:
     except (OSError, RuntimeError) as e:
         raise SchemaError(f"{p}: cannot read HDF5 data; the file may be truncated or corrupt ({e})") from None
     except (KeyError, ValueError, TypeError) as e:
-        if not _raised_in_h5py(e):  # ours: a bug, keep its traceback
+        if not raised_in_h5py(e):  # ours: a bug, keep its traceback
             raise
         # a damaged object header or attribute surfaces from h5py as KeyError/ValueError/TypeError
         raise SchemaError(f"{p}: cannot read HDF5 object; the file may be corrupt ({e})") from None
-
-
-def _raised_in_h5py(e: BaseException) -> bool:
-    tb, last = e.__traceback__, None
-    while tb is not None:
-        last, tb = tb.tb_frame.f_code.co_filename, tb.tb_next
-    return last is not None and "h5py" in Path(last).parts
 
 
 def _str(v: Any) -> str | None:

@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 
 from . import schema
-from .errors import SchemaError, SchemaWarning
+from .errors import SchemaError, SchemaWarning, raised_in_h5py
 from .schema import (_EVENT_DTYPES, _OPTIONAL, _PARTS, COLOR_FILTERS, COUNT_CONVENTIONS, FORMAT, TRANSFERS, VERSION,
                      _is_int, _open, _str)
 
@@ -49,7 +49,7 @@ def validate(source: str | os.PathLike | h5py.File, require_complete: bool = Tru
         except (OSError, RuntimeError) as e:
             raise SchemaError(f"{source.file.filename}: cannot read HDF5 data ({e})") from None
         except (KeyError, ValueError, TypeError) as e:
-            if not schema._raised_in_h5py(e):
+            if not raised_in_h5py(e):
                 raise
             raise SchemaError(f"{source.file.filename}: cannot read HDF5 object; the file may be corrupt ({e})") \
                 from None

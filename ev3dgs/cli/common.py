@@ -7,7 +7,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import Ev3dgsError
+from ..errors import Ev3dgsError, raised_in_h5py
 
 
 class _Parser(argparse.ArgumentParser):
@@ -52,16 +52,6 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _from_h5py(e: BaseException) -> bool:
-    """Raised inside h5py (its errors are OSError, KeyError, RuntimeError, ValueError... with HDF5 text)."""
-    tb = e.__traceback__
-    last = None
-    while tb is not None:
-        last = tb.tb_frame.f_code.co_filename
-        tb = tb.tb_next
-    return last is not None and "h5py" in last.replace("\\", "/").split("/")[:-1]
-
-
 def error_message(e: BaseException) -> str | None:
     """The one-line message for an error a user can act on, or None for a bug (which keeps its traceback)."""
     from ..outputs import _is_write_failure, os_error_message
@@ -72,7 +62,7 @@ def error_message(e: BaseException) -> str | None:
         root = e.name.split(".")[0]
         hint = _EXTRAS.get(root, f"pip install {root}")
         return f"this needs the optional package {root!r}, which is not installed: {hint}"
-    if _from_h5py(e):
+    if raised_in_h5py(e):
         return f"HDF5: {e}"
     if isinstance(e, OSError):
         return os_error_message(e)
