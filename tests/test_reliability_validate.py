@@ -27,6 +27,8 @@ from ev3dgs.io.davis import DavisOptions
 
 from test_stability import tiny_scene  # noqa: E402,F401  (a fixture: the scene test_stability trains on)
 
+from h5_edits import set_attr, set_value
+
 W, H, VIEWS, S = 16, 12, 3, 3
 
 
@@ -68,18 +70,6 @@ def scene_copy(valid_file, tmp_path):
 
 # ------------------------------------------------------------------------------------- corruptions
 
-def _set(name, value, index=()):
-    def fn(f):
-        a = f[name][()]
-        a[index] = value
-        f[name][...] = a
-    return fn
-
-
-def _attr(obj, key, value):
-    def fn(f):
-        f[obj].attrs[key] = value
-    return fn
 
 
 def _empty(group, names):
@@ -119,32 +109,32 @@ TRAIN_PARTS = ("images", "exposure", "poses", "pose_t", "sharp", "sharp_poses")
 ERRORS = [
     ("empty train", _empty("/train", TRAIN_PARTS), "/train/images: no views (N = 0)"),
     ("empty test", _empty("/test", ("images", "poses")), "/test/images: no views (M = 0)"),
-    ("all-zero poses", _set("/train/poses", 0.0), "/train/poses: pose [0, 0] is not rigid"),
+    ("all-zero poses", set_value("/train/poses", 0.0), "/train/poses: pose [0, 0] is not rigid"),
     ("rotation x1e6", _scale_rotation, "/train/poses: pose [1, 2] is not rigid: its rotation part is not orthonormal"),
     ("reflection", _reflect, "/train/poses: pose [0, 1] is not rigid: its rotation part is a reflection"),
-    ("last row", _set("/train/poses", 0.5, (2, 0, 3, 0)), "/train/poses: pose [2, 0] is not rigid: last row"),
-    ("translation 1e300", _set("/train/poses", 1e300, (1, 1, 0, 3)), "/train/poses: pose [1, 1] has translation"),
-    ("sharp pose scaled", _set("/train/sharp_poses", 2.0, (2, 1, 1)), "/train/sharp_poses: pose [2] is not rigid"),
+    ("last row", set_value("/train/poses", 0.5, (2, 0, 3, 0)), "/train/poses: pose [2, 0] is not rigid: last row"),
+    ("translation 1e300", set_value("/train/poses", 1e300, (1, 1, 0, 3)), "/train/poses: pose [1, 1] has translation"),
+    ("sharp pose scaled", set_value("/train/sharp_poses", 2.0, (2, 1, 1)), "/train/sharp_poses: pose [2] is not rigid"),
     ("test pose sheared", _shear, "/test/poses: pose [1] is not rigid"),
-    ("log_knee 0", _attr("/events", "log_knee", 0.0), "/events: attr log_knee must be a finite number > 0"),
-    ("log_knee negative", _attr("/events", "log_knee", -0.1), "/events: attr log_knee must be a finite number > 0"),
-    ("log_knee nan", _attr("/events", "log_knee", np.nan), "/events: attr log_knee must be a finite number > 0"),
-    ("threshold 0", _attr("/events", "neg_threshold", 0.0), "/events: attr neg_threshold must be a finite number > 0"),
-    ("threshold inf", _attr("/events", "pos_threshold", np.inf), "/events: attr pos_threshold must be a finite"),
-    ("K zeros", _set("/camera/K", 0.0), "/camera/K: focal lengths must be > 0"),
-    ("negative fx", _set("/camera/K", -20.0, (0, 0)), "/camera/K: focal lengths must be > 0"),
-    ("fy zero", _set("/camera/K", 0.0, (1, 1)), "/camera/K: focal lengths must be > 0"),
-    ("K row 2", _set("/camera/K", 2.0, (2, 2)), "/camera/K: not a pinhole matrix"),
-    ("K lower", _set("/camera/K", 0.3, (1, 0)), "/camera/K: not a pinhole matrix"),
-    ("principal point nan", _set("/camera/K", np.nan, (0, 2)), "/camera/K: non-finite value at index [0, 2]"),
-    ("skew inf", _set("/camera/K", np.inf, (0, 1)), "/camera/K: non-finite value at index [0, 1]"),
+    ("log_knee 0", set_attr("/events", "log_knee", 0.0), "/events: attr log_knee must be a finite number > 0"),
+    ("log_knee negative", set_attr("/events", "log_knee", -0.1), "/events: attr log_knee must be a finite number > 0"),
+    ("log_knee nan", set_attr("/events", "log_knee", np.nan), "/events: attr log_knee must be a finite number > 0"),
+    ("threshold 0", set_attr("/events", "neg_threshold", 0.0), "/events: attr neg_threshold must be a finite number > 0"),
+    ("threshold inf", set_attr("/events", "pos_threshold", np.inf), "/events: attr pos_threshold must be a finite"),
+    ("K zeros", set_value("/camera/K", 0.0), "/camera/K: focal lengths must be > 0"),
+    ("negative fx", set_value("/camera/K", -20.0, (0, 0)), "/camera/K: focal lengths must be > 0"),
+    ("fy zero", set_value("/camera/K", 0.0, (1, 1)), "/camera/K: focal lengths must be > 0"),
+    ("K row 2", set_value("/camera/K", 2.0, (2, 2)), "/camera/K: not a pinhole matrix"),
+    ("K lower", set_value("/camera/K", 0.3, (1, 0)), "/camera/K: not a pinhole matrix"),
+    ("principal point nan", set_value("/camera/K", np.nan, (0, 2)), "/camera/K: non-finite value at index [0, 2]"),
+    ("skew inf", set_value("/camera/K", np.inf, (0, 1)), "/camera/K: non-finite value at index [0, 1]"),
     ("pose_t unsorted", _unsort_pose_t, "/train/pose_t: view 1 pose times are not increasing"),
-    ("pose_t repeated", _set("/train/pose_t", 55_000, (1, 2)), "/train/pose_t: view 1 pose times are not increasing"),
-    ("pose_t outside", _set("/train/pose_t", 200_000, (2, 2)), "/train/pose_t: sample [2, 2] at t=200000 is outside"),
-    ("exposure empty", _set("/train/exposure", 50_000, (1, 1)), "/train/exposure: view 1 has start 50000 >= end"),
-    ("exposure reversed", _set("/train/exposure", 0, (2, 1)), "/train/exposure: view 2 has start 100000 >= end 0"),
-    ("points 1e30", _set("/points/xyz", 1e30, (4, 1)), "/points/xyz: value at index [4, 1] exceeds"),
-    ("bounds 1e300", _attr("/", "bounds", np.array([[-1e300] * 3, [1.0] * 3])), "/: attr bounds exceed"),
+    ("pose_t repeated", set_value("/train/pose_t", 55_000, (1, 2)), "/train/pose_t: view 1 pose times are not increasing"),
+    ("pose_t outside", set_value("/train/pose_t", 200_000, (2, 2)), "/train/pose_t: sample [2, 2] at t=200000 is outside"),
+    ("exposure empty", set_value("/train/exposure", 50_000, (1, 1)), "/train/exposure: view 1 has start 50000 >= end"),
+    ("exposure reversed", set_value("/train/exposure", 0, (2, 1)), "/train/exposure: view 2 has start 100000 >= end 0"),
+    ("points 1e30", set_value("/points/xyz", 1e30, (4, 1)), "/points/xyz: value at index [4, 1] exceeds"),
+    ("bounds 1e300", set_attr("/", "bounds", np.array([[-1e300] * 3, [1.0] * 3])), "/: attr bounds exceed"),
 ]
 
 

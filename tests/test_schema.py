@@ -17,6 +17,8 @@ from ev3dgs.schema import Test as Views  # noqa: E402  (not a pytest class)
 from ev3dgs.schema import (Camera, EventSensor, Imu, LazyArray, LazyEvents, Points, Scene, Train,
                            read, validate, write)
 
+from h5_edits import replace, set_attr, set_value
+
 W, H = 12, 8
 
 
@@ -244,26 +246,6 @@ def _del(name):
     return fn
 
 
-def _replace(name, data):
-    def fn(f):
-        new = data(f) if callable(data) else data
-        del f[name]
-        f.create_dataset(name, data=new)
-    return fn
-
-
-def _set(name, index, value):
-    def fn(f):
-        a = f[name][()]
-        a[index] = value
-        f[name][...] = a
-    return fn
-
-
-def _attr(obj, key, value):
-    def fn(f):
-        f[obj].attrs[key] = value
-    return fn
 
 
 def _unsort(f):
@@ -278,57 +260,57 @@ CORRUPTIONS = [
     ("missing events x", _del("/events/x"), "/events/x: missing"),
     ("missing camera", _del("/camera"), "/camera: missing"),
     ("missing K", _del("/camera/K"), "/camera/K: missing"),
-    ("events t dtype", _replace("/events/t", lambda f: f["/events/t"][()].astype(np.float64)),
+    ("events t dtype", replace("/events/t", lambda f: f["/events/t"][()].astype(np.float64)),
      "/events/t: expected dtype int64, found float64"),
-    ("images dtype", _replace("/train/images", lambda f: f["/train/images"][()].astype(np.uint16)),
+    ("images dtype", replace("/train/images", lambda f: f["/train/images"][()].astype(np.uint16)),
      "/train/images: expected dtype uint8, found uint16"),
-    ("K shape", _replace("/camera/K", np.eye(4)), "/camera/K: expected shape (3, 3), found (4, 4)"),
-    ("images shape", _replace("/train/images", lambda f: f["/train/images"][:, :, :-1]),
+    ("K shape", replace("/camera/K", np.eye(4)), "/camera/K: expected shape (3, 3), found (4, 4)"),
+    ("images shape", replace("/train/images", lambda f: f["/train/images"][:, :, :-1]),
      f"/train/images: expected shape (N, H={H}, W={W}, 3), found (3, {H}, {W - 1}, 3)"),
-    ("events length", _replace("/events/p", lambda f: f["/events/p"][:-1]),
+    ("events length", replace("/events/p", lambda f: f["/events/p"][:-1]),
      "/events/p: expected shape (E=500,), found (499,)"),
     ("unsorted", _unsort, "/events/t: not sorted (first decrease at index 41)"),
-    ("polarity", _set("/events/p", 7, 0), "/events/p: value 0 at index 7"),
-    ("x range", _set("/events/x", 3, W), "/events/x: value 12 at index 3 is out of range"),
-    ("y range", _set("/events/y", 9, H + 5), "/events/y: value 13 at index 9 is out of range"),
-    ("newer version", _attr("/", "version", 2), "/: schema version 2 is newer than this reader (1)"),
-    ("version not int", _attr("/", "version", "1"), "/: attr version must be an integer"),
-    ("format", _attr("/", "format", "something-else"), "/: attr format is 'something-else'"),
-    ("config", _attr("/", "config", "{not json"), "/: attr config is not valid JSON"),
-    ("config not object", _attr("/", "config", "[1, 2]"), "/: attr config must be a JSON object"),
-    ("bounds", _attr("/", "bounds", np.array([[1.0, 0, 0], [0, 1, 1]])), "/: attr bounds"),
-    ("width", _attr("/camera", "width", 0), "/camera: attr width must be a positive integer"),
-    ("background", _attr("/camera", "background", np.array([0.0, 1.5, 0.2])), "/camera: attr background"),
-    ("threshold", _attr("/events", "pos_threshold", -0.1), "/events: attr pos_threshold"),
-    ("color filter", _attr("/events", "color_filter", "XYZW"), "/events: attr color_filter"),
-    ("refractory", _attr("/events", "refractory_us", -1), "/events: attr refractory_us"),
+    ("polarity", set_value("/events/p", 0, 7), "/events/p: value 0 at index 7"),
+    ("x range", set_value("/events/x", W, 3), "/events/x: value 12 at index 3 is out of range"),
+    ("y range", set_value("/events/y", H + 5, 9), "/events/y: value 13 at index 9 is out of range"),
+    ("newer version", set_attr("/", "version", 2), "/: schema version 2 is newer than this reader (1)"),
+    ("version not int", set_attr("/", "version", "1"), "/: attr version must be an integer"),
+    ("format", set_attr("/", "format", "something-else"), "/: attr format is 'something-else'"),
+    ("config", set_attr("/", "config", "{not json"), "/: attr config is not valid JSON"),
+    ("config not object", set_attr("/", "config", "[1, 2]"), "/: attr config must be a JSON object"),
+    ("bounds", set_attr("/", "bounds", np.array([[1.0, 0, 0], [0, 1, 1]])), "/: attr bounds"),
+    ("width", set_attr("/camera", "width", 0), "/camera: attr width must be a positive integer"),
+    ("background", set_attr("/camera", "background", np.array([0.0, 1.5, 0.2])), "/camera: attr background"),
+    ("threshold", set_attr("/events", "pos_threshold", -0.1), "/events: attr pos_threshold"),
+    ("color filter", set_attr("/events", "color_filter", "XYZW"), "/events: attr color_filter"),
+    ("refractory", set_attr("/events", "refractory_us", -1), "/events: attr refractory_us"),
     ("poses without pose_t", _del("/train/pose_t"), "/train/pose_t: missing"),
     ("pose_t without poses", _del("/train/poses"), "/train/poses: missing"),
-    ("pose_t outside exposure", _set("/train/pose_t", (1, 1), 10_000_000),
+    ("pose_t outside exposure", set_value("/train/pose_t", 10_000_000, (1, 1)),
      "/train/pose_t: sample [1, 1] at t=10000000 is outside the exposure"),
-    ("non-finite pose", _set("/train/poses", (2, 0, 1, 3), np.nan),
+    ("non-finite pose", set_value("/train/poses", np.nan, (2, 0, 1, 3)),
      "/train/poses: non-finite value at index [2, 0, 1, 3]"),
-    ("mismatched N", _replace("/train/exposure", lambda f: f["/train/exposure"][:2]),
+    ("mismatched N", replace("/train/exposure", lambda f: f["/train/exposure"][:2]),
      "/train/exposure: expected shape (N=3, 2), found (2, 2)"),
-    ("exposure order", _set("/train/exposure", (1, 1), 10_000), "/train/exposure: view 1 has start 10000 >= end 10000"),
+    ("exposure order", set_value("/train/exposure", 10_000, (1, 1)), "/train/exposure: view 1 has start 10000 >= end 10000"),
     ("sharp without poses", _del("/train/sharp_poses"), "/train/sharp_poses: missing"),
-    ("sharp N", _replace("/train/sharp", lambda f: f["/train/sharp"][:1]), "/train/sharp: expected shape (N=3,"),
-    ("test poses shape", _replace("/test/poses", lambda f: f["/test/poses"][:1]),
+    ("sharp N", replace("/train/sharp", lambda f: f["/train/sharp"][:1]), "/train/sharp: expected shape (N=3,"),
+    ("test poses shape", replace("/test/poses", lambda f: f["/test/poses"][:1]),
      "/test/poses: expected shape (M=2, 4, 4), found (1, 4, 4)"),
     ("test missing poses", _del("/test/poses"), "/test/poses: missing"),
-    ("points dtype", _replace("/points/xyz", lambda f: f["/points/xyz"][()].astype(np.float64)),
+    ("points dtype", replace("/points/xyz", lambda f: f["/points/xyz"][()].astype(np.float64)),
      "/points/xyz: expected dtype float32, found float64"),
-    ("points rgb shape", _replace("/points/rgb", lambda f: f["/points/rgb"][:5]),
+    ("points rgb shape", replace("/points/rgb", lambda f: f["/points/rgb"][:5]),
      "/points/rgb: expected shape (P=40, 3)"),
-    ("imu gyro", _replace("/imu/gyro", lambda f: f["/imu/gyro"][:, :2]), "/imu/gyro: expected shape (I=20, 3)"),
+    ("imu gyro", replace("/imu/gyro", lambda f: f["/imu/gyro"][:, :2]), "/imu/gyro: expected shape (I=20, 3)"),
     ("imu missing", _del("/imu/temperature"), "/imu/temperature: missing"),
-    ("count convention", _attr("/events", "count_convention", "floor"), "/events: attr count_convention"),
-    ("raw matrix shape", _attr("/events", "camera_raw_matrix", np.eye(2)), "/events: attr camera_raw_matrix"),
-    ("raw matrix singular", _attr("/events", "camera_raw_matrix", np.zeros((3, 3))),
+    ("count convention", set_attr("/events", "count_convention", "floor"), "/events: attr count_convention"),
+    ("raw matrix shape", set_attr("/events", "camera_raw_matrix", np.eye(2)), "/events: attr camera_raw_matrix"),
+    ("raw matrix singular", set_attr("/events", "camera_raw_matrix", np.zeros((3, 3))),
      "/events: attr camera_raw_matrix"),
-    ("raw matrix nan", _attr("/events", "camera_raw_matrix", np.full((3, 3), np.nan)),
+    ("raw matrix nan", set_attr("/events", "camera_raw_matrix", np.full((3, 3), np.nan)),
      "/events: attr camera_raw_matrix"),
-    ("transfer", _attr("/train", "transfer", "gamma22"), "/train: attr transfer must be one of"),
+    ("transfer", set_attr("/train", "transfer", "gamma22"), "/train: attr transfer must be one of"),
 ]
 
 
