@@ -10,8 +10,9 @@ transforms.json (nerfstudio; splatfacto, nerfacto, gsplat's nerfstudio-style loa
   train_filenames / val_filenames / test_filenames: the split (val = test = our /test views).
   ply_file_path "points3d.ply" when the scene has /points (splatfacto's initialisation).
 transforms_train.json / transforms_val.json / transforms_test.json (original NeRF Blender loaders, graphdeco
-  3DGS's readCamerasFromTransforms): camera_angle_x and frames[] with file_path WITHOUT extension (".png" is
-  appended by those loaders), same transform_matrix.
+  3DGS's readCamerasFromTransforms, gsplat's examples/datasets/blender.py): camera_angle_x and frames[] with
+  file_path "./DIR/NNN" WITHOUT extension (those loaders append ".png"), same transform_matrix; they assume
+  cx = W/2, cy = H/2 and fx = fy.
 
 --images picks the training frames: blurry (the recorded frames at the mid-exposure pose, the pose ev3dgs'
 naive baseline trains them at), sharp (/train/sharp at /train/sharp_poses, synthetic scenes) or both.
