@@ -57,19 +57,21 @@ def export(sc, ev_path: str, stage: Path, quiet: bool = False) -> dict:
             chunks = (max(1, min(_CHUNK_ROWS, E)),)
             ds = {n: g.create_dataset(n, shape=(E,), dtype=dt, chunks=chunks, **_GZIP)
                   for n, dt in (("x", np.uint16), ("y", np.uint16), ("t", np.uint32), ("p", np.uint8))}
-            ms_to_idx = np.zeros(n_ms, np.uint64)
-            edges = np.arange(n_ms, dtype=np.int64) * 1000
+            ms_to_idx = np.full(n_ms, E, np.uint64)
             bar = progress(E, "events-h5", quiet)
-            start = 0
+            start, next_ms = 0, 0
             for ev in es.blocks():
                 rel = ev.t - off
                 j = start + len(ev)
                 ds["x"][start:j], ds["y"][start:j] = ev.x, ev.y
                 ds["t"][start:j] = rel.astype(np.uint32)
                 ds["p"][start:j] = (ev.p > 0).astype(np.uint8)
-                # global first index with t >= edge = sum over blocks of per-block counts below the edge
-                ms_to_idx += np.searchsorted(rel, edges, side="left").astype(np.uint64)
-                start = j
+                # ms m with 1000 m <= this block's last t: its first event at or after 1000 m lies in this block
+                # (an earlier one would have settled m with an earlier block), so each m is set exactly once
+                last_ms = int(rel[-1]) // 1000
+                ms = np.arange(next_ms, last_ms + 1, dtype=np.int64)
+                ms_to_idx[next_ms:last_ms + 1] = start + np.searchsorted(rel, ms * 1000, side="left")
+                next_ms, start = max(next_ms, last_ms + 1), j
                 bar.update(len(ev))
             bar.close()
             f.create_dataset("ms_to_idx", data=ms_to_idx)

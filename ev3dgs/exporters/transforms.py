@@ -25,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import schema
 from ..errors import InputError
 from ..geometry import interpolate_pose, opencv_to_blender
 from .common import image_width, progress, write_png
-from .notes import intrinsics_lines, transfer_lines
+from .notes import intrinsics_lines
 
 IMAGE_SETS = ("blurry", "sharp", "both")
 
@@ -119,7 +120,9 @@ def _readme(sc, info: dict) -> str:
          "- world orientation/scale normalisation is left to the reader (nerfstudio auto-orients and scales)."]
     L += intrinsics_lines(sc, "fl_x, fl_y, cx, cy and OpenCV k1 k2 k3 p1 p2 in transforms.json, "
                               "camera_angle_x only in the Blender files")
-    L += transfer_lines(sc)
+    tr = sc.train.transfer or schema.default_transfer(sc.source)
+    L.append(f"- images: 8-bit, transfer '{tr}' (srgb: ordinary sRGB-encoded images, what NeRF/3DGS trainers "
+             "expect; the blur in a blurry frame was averaged in linear light, which a plain trainer ignores).")
     if sc.camera.background is not None:
         L.append(f"- background colour {list(sc.camera.background)}: not stored (set the trainer's background, "
                  "e.g. nerfstudio --pipeline.model.background-color).")
