@@ -398,7 +398,7 @@ def test_out_containing_the_scene_is_refused(tmp_path):
     assert path.is_file()
 
 
-def test_demo_like_cli_prints_one_summary(scene, tmp_path):
+def test_cli_prints_one_summary_and_no_bar_when_piped(scene, tmp_path):
     path, _ = scene
     r = _cli("export-dataset", path, "--format", "e2nerf", "--out", tmp_path / "e")
     assert r.returncode == 0 and r.stderr == "" and "README.txt" in r.stdout   # no bar when not a TTY
