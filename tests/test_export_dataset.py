@@ -466,3 +466,23 @@ def test_e2nerf_events_pt_is_never_whole_in_memory(tmp_path):
         tracemalloc.stop()
     assert (tmp_path / "o" / "events.pt").stat().st_size > pt_bytes
     assert peak < pt_bytes / 4, f"peak {peak / 2**20:.1f} MB for a {pt_bytes / 2**20:.1f} MB events.pt"
+
+
+@pytest.mark.parametrize("fmt", ["e2nerf", "events-h5", "aedat4", "transforms"])
+def test_scene_without_events(tmp_path, fmt):
+    from ev3dgs.geometry import look_at
+
+    exposure = np.array([[0, 10], [20, 30]])
+    sc = schema.Scene(name="z", source="blender", camera=schema.Camera(8, 6, intrinsics(8, 6, 50.0)), events=Events(),
+                      sensor=schema.EventSensor(),
+                      train=schema.Train(images=np.zeros((2, 6, 8, 3), np.uint8), exposure=exposure,
+                                         poses=np.tile(look_at([0, -3, 0], [0, 0, 0]), (2, 2, 1, 1)), pose_t=exposure))
+    with pytest.warns(Warning):
+        p = schema.write(sc, tmp_path / "z.h5")
+    with pytest.warns(Warning):
+        export_dataset(p, fmt, tmp_path / "o", quiet=True)
+    if fmt == "events-h5":
+        with h5py.File(tmp_path / "o" / "events.h5") as f:
+            assert f["events/t"].shape == (0,) and list(f["ms_to_idx"][()]) == [0, 0]
+    if fmt == "e2nerf":
+        assert not torch.load(tmp_path / "o" / "events.pt", weights_only=True).any()

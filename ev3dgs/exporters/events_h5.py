@@ -55,7 +55,7 @@ def export(sc, ev_path: str, stage: Path, quiet: bool = False) -> dict:
         with h5py.File(stage / "events.h5", "w") as f:
             g = f.create_group("events")
             chunks = (max(1, min(_CHUNK_ROWS, E)),)
-            ds = {n: g.create_dataset(n, shape=(E,), dtype=dt, chunks=chunks, **_GZIP)
+            ds = {n: g.create_dataset(n, shape=(E,), maxshape=(None,), dtype=dt, chunks=chunks, **_GZIP)
                   for n, dt in (("x", np.uint16), ("y", np.uint16), ("t", np.uint32), ("p", np.uint8))}
             ms_to_idx = np.full(n_ms, E, np.uint64)
             bar = progress(E, "events-h5", quiet)
