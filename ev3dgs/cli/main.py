@@ -225,6 +225,9 @@ def build_parser():
     v.add_argument("--partial", action="store_true",
                    help="accept an events-only file, no /train and no K (default: off, a complete file is required)")
     v.set_defaults(func=_validate)
+    from .export_dataset import add_parser as add_export_dataset  # issue 19: ev3dgs export-dataset
+
+    add_export_dataset(sub)
     return p
 
 
