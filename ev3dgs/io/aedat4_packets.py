@@ -1,0 +1,307 @@
+"""AEDAT 4.0 packet decoding: bounded decompression into reused buffers, flatbuffer parsing of the four packet
+types, and the optional read-ahead thread pool.
+
+A packet payload is one LZ4 or zstd frame (or raw bytes) holding a size-prefixed flatbuffer. It is decompressed
+with cramjam's `decompress_into` into a per-thread scratch buffer that is reused from packet to packet (no
+allocation, no page faults and no extra copy per packet; the buffer stays in cache); a packet larger than the
+buffer takes the bounded streaming path once and the buffer grows to fit it. Events are then unpacked in one
+pass (a numba kernel that releases the GIL) into fresh contiguous t/x/y/p arrays together with the statistics
+the per-packet checks need (largest x and y, bad polarity bytes, backward time steps), so the checks
+themselves cost a few scalar comparisons on intact data. Decompression and the kernel both run without the
+GIL, so `threads` > 1 overlaps packets on several cores; memory stays bounded by 2 x threads packets in flight.
+"""
+from __future__ import annotations
+
+import os
+import struct
+import threading
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import cramjam
+import lz4.frame
+import numpy as np
+import zstandard
+from numba import njit
+
+from .flatbuf import FlatbufError, root, table_vector
+from .types import AedatError, FrameData
+
+COMPRESSIONS = {0: "none", 1: "lz4", 2: "lz4-high", 3: "zstd", 4: "zstd-high"}
+KINDS = {"EVTS": "events", "FRME": "frames", "IMUS": "imu", "TRIG": "triggers"}
+IDENTS = {v: k for k, v in KINDS.items()}
+# flatbuffer Event struct: int64 timestamp, int16 x, int16 y, bool polarity, 3 bytes padding (16 bytes)
+EVENT_DTYPE = np.dtype({"names": ["t", "x", "y", "p"], "formats": ["<i8", "<i2", "<i2", "u1"],
+                        "offsets": [0, 8, 10, 12], "itemsize": 16})
+MAX_DECOMPRESSED = 1 << 30          # no packet may claim more than 1 GiB once decompressed
+_SCRATCH0 = 1 << 20                 # first size of a thread's scratch buffer (grows to the largest packet)
+_CHUNK = 8 << 20
+HDR = struct.Struct("<iI")
+IMU_FIELDS = {"t": (0, "<i8"), "temp": (1, "<f4"), "ax": (2, "<f4"), "ay": (3, "<f4"), "az": (4, "<f4"),
+              "gx": (5, "<f4"), "gy": (6, "<f4"), "gz": (7, "<f4")}
+TRIG_FIELDS = {"t": (0, "<i8"), "kind": (1, "i1")}
+POLARITY = np.full(256, -128, np.int8)        # stored byte 0/1 -> -1/+1; any other byte -> -128 (bad)
+POLARITY[:2] = -1, 1
+
+
+class Skip(Exception):
+    """A packet that is valid but not supported (e.g. an unknown frame format): skipped with a warning, also
+    under strict reading."""
+
+
+# ------------------------------------------------------------------ decompression
+def _cap(data) -> int:
+    """Most bytes one packet may decompress to: MAX_DECOMPRESSED and 1024x its compressed size (16 MiB at
+    least), so that a corrupt size cannot make the reader allocate without bound."""
+    return min(MAX_DECOMPRESSED, max(16 << 20, 1024 * len(data)))
+
+
+def _inflate_stream(data, comp: int, at: int) -> bytearray:
+    """Decompress a frame holding a size-prefixed flatbuffer by streaming: the output is bounded by the size
+    prefix and _cap, and allocated only as it is really produced (a decompression bomb stops at the cap)."""
+    cap = _cap(data)
+    if comp in (1, 2):
+        dec, src = lz4.frame.LZ4FrameDecompressor(), [data]
+
+        def read(k: int) -> bytes:
+            if dec.eof or (not src and dec.needs_input):
+                return b""
+            return dec.decompress(src.pop() if src else b"", max_length=k)
+    else:
+        read = zstandard.ZstdDecompressor().stream_reader(data).read
+    out = bytearray()
+    while len(out) < 4:
+        chunk = read(4 - len(out))
+        if not chunk:
+            raise AedatError(f"byte {at}: packet decompresses to {len(out)} bytes, too short for a flatbuffer")
+        out += chunk
+    total = 4 + struct.unpack_from("<I", out)[0]
+    if total > cap:
+        raise AedatError(f"byte {at}: packet claims {total} decompressed bytes from {len(data)} compressed "
+                         f"bytes (limit {cap})")
+    while len(out) < total:
+        chunk = read(min(total - len(out), _CHUNK))
+        if not chunk:
+            break
+        out += chunk
+    if len(out) < total:
+        raise AedatError(f"byte {at}: packet decompresses to {len(out)} bytes but its flatbuffer size prefix "
+                         f"says {total}")
+    return out
+
+
+_local = threading.local()
+
+
+def decompress(data, comp: int, at: int) -> np.ndarray:
+    """The decompressed payload of one packet as a uint8 array. For compressed packets it is a view of this
+    thread's scratch buffer: valid only until this thread's next call (copy what must outlive it)."""
+    if comp == 0:
+        return np.frombuffer(data, np.uint8)
+    buf = getattr(_local, "buf", None)
+    if buf is None:
+        buf = _local.buf = np.empty(_SCRATCH0, np.uint8)
+    codec = cramjam.lz4 if comp in (1, 2) else cramjam.zstd
+    try:
+        n = codec.decompress_into(data, buf)
+    except cramjam.DecompressionError as e:
+        if "whole buffer" not in str(e):      # corrupt data (not merely a buffer too small for this packet)
+            raise AedatError(f"byte {at}: {COMPRESSIONS[comp]} decompression failed: {e}") from None
+        try:
+            out = _inflate_stream(data, comp, at)
+        except AedatError:
+            raise
+        except Exception as e:   # lz4 raises RuntimeError, zstandard ZstdError: both mean corrupt data
+            raise AedatError(f"byte {at}: {COMPRESSIONS[comp]} decompression failed: {e}") from None
+        _local.buf = np.empty(1 << (len(out) - 1).bit_length(), np.uint8)   # fits the largest packet so far
+        return np.frombuffer(out, np.uint8)
+    if n < 4:
+        raise AedatError(f"byte {at}: packet decompresses to {n} bytes, too short for a flatbuffer")
+    total = 4 + int(buf[:4].view("<u4")[0])
+    if n < total:
+        raise AedatError(f"byte {at}: packet decompresses to {n} bytes but its flatbuffer size prefix says {total}")
+    return buf[:n]
+
+
+# ------------------------------------------------------------------ flatbuffer payloads
+def parse(payload, kind: str, at: int):
+    """(root table, flatbuffer body) of a payload checked to be a `kind` packet; AedatError names the byte."""
+    try:
+        tab, ident, body = root(payload)
+    except FlatbufError as e:
+        raise AedatError(f"byte {at}: {kind} packet: corrupt flatbuffer ({e} of the decompressed payload)") from None
+    name = ident.decode("ascii", "replace")
+    if name in KINDS and kind in IDENTS and name != IDENTS[kind]:
+        raise AedatError(f"byte {at}: packet identifier {name} in a {kind} stream (expected {IDENTS[kind]})")
+    return tab, body
+
+
+@dataclass
+class EventArrays:
+    """One events packet unpacked: contiguous t (int64), x, y (uint16; a negative int16 coordinate reads as
+    >= 32768), pol (int8 +1/-1, -128 for a stored byte other than 0/1) and the statistics the checks use."""
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    pol: np.ndarray
+    max_x: int
+    max_y: int
+    bad_polarity: int           # events whose stored polarity byte is not 0 or 1
+    backward: int               # k with t[k] < t[k-1]
+
+
+@njit(nogil=True, cache=True, boundscheck=False)
+def _unpack_events(words, lut, t, x, y, pol):
+    """words: the n Event structs as 2n int64 ([t][x | y << 16 | p << 32 | pad] each). One pass writing t, x,
+    y, pol (len(t) == n, checked by the caller) and returning (max x, max y, bad polarity bytes, backward
+    time steps)."""
+    n = t.shape[0]
+    mx = np.int64(0)
+    my = np.int64(0)
+    badp = np.int64(0)
+    back = np.int64(0)
+    prev = words[0] if n else np.int64(0)
+    for k in range(n):
+        tk = words[2 * k]
+        m = words[2 * k + 1]
+        t[k] = tk
+        back += np.int64(tk < prev)
+        prev = tk
+        xk = m & 0xFFFF
+        yk = (m >> 16) & 0xFFFF
+        pk = (m >> 32) & 0xFF
+        x[k] = np.uint16(xk)
+        y[k] = np.uint16(yk)
+        if xk > mx:
+            mx = xk
+        if yk > my:
+            my = yk
+        pol[k] = lut[pk]
+        badp += np.int64(pk > 1)
+    return mx, my, badp, back
+
+
+def decode_events(payload, at: int) -> EventArrays:
+    tab, body = parse(payload, "events", at)
+    start, n = tab.vector(0, EVENT_DTYPE.itemsize)
+    words = np.frombuffer(body, "<i8", count=2 * n, offset=start)
+    if not words.flags.aligned:             # the format aligns Event structs to 8 bytes; a damaged file may not
+        words = words.copy()
+    t, x, y, pol = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.int8)
+    mx, my, badp, back = _unpack_events(words, POLARITY, t, x, y, pol)
+    return EventArrays(t, x, y, pol, int(mx), int(my), int(badp), int(back))
+
+
+def decode_frame(payload, at: int, source: str) -> FrameData:
+    tab, body = parse(payload, "frames", at)
+    ts = [tab.scalar(k, "q", 0) for k in range(5)]
+    code, w, h = tab.scalar(5, "b", 0), tab.scalar(6, "h", 0), tab.scalar(7, "h", 0)
+    depth, ch = code & 7, (code >> 3) + 1
+    if depth not in (0, 2) or code < 0:
+        raise Skip(f"byte {at}: frame with unsupported OpenCV type {code} skipped")
+    if w < 0 or h < 0:
+        raise AedatError(f"byte {at}: frame size {w}x{h} is negative")
+    start, n = tab.vector(10, 1)
+    dt = np.dtype(np.uint8 if depth == 0 else "<u2")
+    if n != w * h * ch * dt.itemsize:
+        raise AedatError(f"byte {at}: frame holds {n} pixel bytes, {w}x{h}x{ch}x{dt.itemsize} expected")
+    img = np.frombuffer(body, dt, count=w * h * ch, offset=start).astype(dt.newbyteorder("="))   # a copy
+    img = img.reshape((h, w) if ch == 1 else (h, w, ch))
+    return FrameData(timestamp=ts[0], frame_start=ts[1], frame_end=ts[2], exposure_start=ts[3],
+                     exposure_end=ts[4], image=img, position=(tab.scalar(8, "h", 0), tab.scalar(9, "h", 0)),
+                     source=source)
+
+
+def decode_vector(payload, at: int, kind: str) -> dict[str, np.ndarray]:
+    """IMU or trigger samples: one array per field (fresh arrays: they do not keep the payload alive)."""
+    tab, body = parse(payload, kind, at)
+    start, n = tab.vector(0, 4)
+    return table_vector(body, start, n, IMU_FIELDS if kind == "imu" else TRIG_FIELDS)
+
+
+def summary(payload, at: int, kind: str) -> tuple[int, int, int]:
+    """(elements, first t, last t) of a packet (used when there is no FileDataTable)."""
+    tab, body = parse(payload, kind, at)
+    if kind == "frames":
+        t = tab.scalar(0, "q", 0)
+        return 1, t, t
+    start, n = tab.vector(0, 16 if kind == "events" else 4)
+    if not n:
+        return 0, -1, -1
+    if kind == "events":
+        t = np.frombuffer(body, "<i8", count=2 * n, offset=start)[::2]
+    else:
+        t = table_vector(body, start, n, {"t": (0, "<i8")})["t"]
+    return n, int(t.min()), int(t.max())
+
+
+# ------------------------------------------------------------------ reading packets
+class PacketReader:
+    """Reads packet i of an indexed file (positioned reads: safe from worker threads) and decodes it."""
+
+    def __init__(self, f, off: np.ndarray, size: np.ndarray, sid: np.ndarray, compression: int, path: str) -> None:
+        self.f, self.off, self.size, self.sid, self.comp, self.path = f, off, size, sid, compression, path
+
+    def raw(self, i: int) -> tuple[bytes, int]:
+        off, n, sid = int(self.off[i]), int(self.size[i]), int(self.sid[i])
+        if self.f.closed:
+            raise AedatError(f"{self.path}: the reader is closed")
+        raw = os.pread(self.f.fileno(), n + 8, off - 8)
+        if len(raw) < n + 8:
+            raise AedatError(f"byte {off - 8}: file ends inside the packet ({n} bytes): was it truncated since opening?")
+        if HDR.unpack_from(raw) != (sid, n):
+            hs, hn = HDR.unpack_from(raw)
+            raise AedatError(f"byte {off - 8}: packet header (stream {hs}, {hn} bytes) does not match the "
+                             f"FileDataTable (stream {sid}, {n} bytes)")
+        return raw, off
+
+    def payload(self, i: int) -> bytes:
+        """The decompressed payload of packet i as its own bytes object."""
+        raw, off = self.raw(i)
+        return bytes(decompress(memoryview(raw)[8:], self.comp, off))
+
+    def decode(self, i: int, kind: str, source: str = ""):
+        """Packet i decoded as `kind`: EventArrays, FrameData or a dict of sample arrays."""
+        raw, off = self.raw(i)
+        payload = decompress(memoryview(raw)[8:], self.comp, off)
+        try:
+            if kind == "events":
+                return decode_events(payload, off)
+            if kind == "frames":
+                return decode_frame(payload, off, source)
+            return decode_vector(payload, off, kind)
+        except FlatbufError as e:
+            raise AedatError(f"byte {off}: corrupt {kind} packet ({e})") from None
+
+    def _attempt(self, i: int, kind: str, source: str):
+        try:
+            return self.decode(i, kind, source)
+        except (AedatError, Skip) as e:
+            return e
+
+    def iterate(self, todo: list[int], kind: str, source: str, threads: int):
+        """Yield (i, decoded packet or the AedatError/Skip it raised) for i in `todo`, in order. With
+        threads > 1 a pool decodes up to 2 x threads packets ahead of the consumer; errors still surface in
+        order, and abandoning the iteration cancels what was queued."""
+        if threads <= 1 or len(todo) < 2:
+            for i in todo:
+                yield i, self._attempt(i, kind, source)
+            return
+        with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="aedat4") as pool:
+            queued: deque = deque()
+            nxt = iter(todo)
+            try:
+                for i in nxt:
+                    queued.append((i, pool.submit(self._attempt, i, kind, source)))
+                    if len(queued) >= 2 * threads:
+                        break
+                while queued:
+                    i, fut = queued.popleft()
+                    j = next(nxt, None)
+                    if j is not None:
+                        queued.append((j, pool.submit(self._attempt, j, kind, source)))
+                    yield i, fut.result()
+            finally:
+                for _, fut in queued:
+                    fut.cancel()
