@@ -4,11 +4,11 @@ types, and the optional read-ahead thread pool.
 A packet payload is one LZ4 or zstd frame (or raw bytes) holding a size-prefixed flatbuffer. It is decompressed
 with cramjam's `decompress_into` into a per-thread scratch buffer that is reused from packet to packet (no
 allocation, no page faults and no extra copy per packet; the buffer stays in cache); a packet larger than the
-buffer takes the bounded streaming path once and the buffer grows to fit it. Events are then unpacked in one
-pass (a numba kernel that releases the GIL) into fresh contiguous t/x/y/p arrays together with the statistics
-the per-packet checks need (largest x and y, bad polarity bytes, backward time steps), so the checks
-themselves cost a few scalar comparisons on intact data. Decompression and the kernel both run without the
-GIL, so `threads` > 1 overlaps packets on several cores; memory stays bounded by 2 x threads packets in flight.
+buffer takes the bounded streaming path once and the buffer grows to fit it. The Event structs are then copied
+out of that buffer in one memcpy (t, x, y are strided views of the copy; p is computed), together with the
+statistics the per-packet checks need (largest x and y, bad polarity bytes, backward time steps), so the checks themselves cost a few
+scalar comparisons on intact data. Decompression and numpy's copies and reductions run without the GIL, so
+`threads` > 1 overlaps packets on several cores; memory stays bounded by 2 x threads packets in flight.
 """
 from __future__ import annotations
 
@@ -23,7 +23,6 @@ import cramjam
 import lz4.frame
 import numpy as np
 import zstandard
-from numba import njit
 
 from .flatbuf import FlatbufError, root, table_vector
 from .types import AedatError, FrameData
@@ -41,8 +40,6 @@ HDR = struct.Struct("<iI")
 IMU_FIELDS = {"t": (0, "<i8"), "temp": (1, "<f4"), "ax": (2, "<f4"), "ay": (3, "<f4"), "az": (4, "<f4"),
               "gx": (5, "<f4"), "gy": (6, "<f4"), "gz": (7, "<f4")}
 TRIG_FIELDS = {"t": (0, "<i8"), "kind": (1, "i1")}
-POLARITY = np.full(256, -128, np.int8)        # stored byte 0/1 -> -1/+1; any other byte -> -128 (bad)
-POLARITY[:2] = -1, 1
 
 
 class Skip(Exception):
@@ -139,8 +136,8 @@ def parse(payload, kind: str, at: int):
 
 @dataclass
 class EventArrays:
-    """One events packet unpacked: contiguous t (int64), x, y (uint16; a negative int16 coordinate reads as
-    >= 32768), pol (int8 +1/-1, -128 for a stored byte other than 0/1) and the statistics the checks use."""
+    """One events packet unpacked: t (int64), x, y (uint16; a negative int16 coordinate reads as >= 32768;
+    strided views of the packet's own copy of the Event structs), pol (int8 +1/-1, -128 for a stored byte other than 0/1) and the statistics the checks use."""
     t: np.ndarray
     x: np.ndarray
     y: np.ndarray
@@ -151,46 +148,29 @@ class EventArrays:
     backward: int               # k with t[k] < t[k-1]
 
 
-@njit(nogil=True, cache=True, boundscheck=False)
-def _unpack_events(words, lut, t, x, y, pol):
-    """words: the n Event structs as 2n int64 ([t][x | y << 16 | p << 32 | pad] each). One pass writing t, x,
-    y, pol (len(t) == n, checked by the caller) and returning (max x, max y, bad polarity bytes, backward
-    time steps)."""
-    n = t.shape[0]
-    mx = np.int64(0)
-    my = np.int64(0)
-    badp = np.int64(0)
-    back = np.int64(0)
-    prev = words[0] if n else np.int64(0)
-    for k in range(n):
-        tk = words[2 * k]
-        m = words[2 * k + 1]
-        t[k] = tk
-        back += np.int64(tk < prev)
-        prev = tk
-        xk = m & 0xFFFF
-        yk = (m >> 16) & 0xFFFF
-        pk = (m >> 32) & 0xFF
-        x[k] = np.uint16(xk)
-        y[k] = np.uint16(yk)
-        if xk > mx:
-            mx = xk
-        if yk > my:
-            my = yk
-        pol[k] = lut[pk]
-        badp += np.int64(pk > 1)
-    return mx, my, badp, back
+_I8, _U2, _S8 = np.dtype("<i8"), np.dtype("<u2"), np.dtype(np.int8)
 
 
 def decode_events(payload, at: int) -> EventArrays:
+    """Unpack an events packet: the Event structs are copied out of the (scratch) payload in one memcpy and
+    t, x, y are strided views of that copy; pol and the statistics for the checks take a few vectorised passes
+    (numpy releases the GIL for them)."""
     tab, body = parse(payload, "events", at)
     start, n = tab.vector(0, EVENT_DTYPE.itemsize)
-    words = np.frombuffer(body, "<i8", count=2 * n, offset=start)
-    if not words.flags.aligned:             # the format aligns Event structs to 8 bytes; a damaged file may not
-        words = words.copy()
-    t, x, y, pol = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.int8)
-    mx, my, badp, back = _unpack_events(words, POLARITY, t, x, y, pol)
-    return EventArrays(t, x, y, pol, int(mx), int(my), int(badp), int(back))
+    b = np.frombuffer(body, np.uint8, count=EVENT_DTYPE.itemsize * n, offset=start).copy()
+    u16 = b.view(_U2)
+    t, x, y = b.view(_I8)[0::2], u16[4::8], u16[5::8]
+    pb = b[12::16]                                      # stored polarity byte: 0 (OFF) or 1 (ON)
+    p8 = pb.view(_S8)
+    pol = np.add(p8, p8)
+    pol -= 1                                            # 0 -> -1, 1 -> +1
+    bad_p = 0
+    if n and pb.max() > 1:
+        bad = pb > 1
+        bad_p = int(np.count_nonzero(bad))
+        pol[bad] = -128
+    back = int(np.count_nonzero(t[1:] < t[:-1])) if n > 1 else 0
+    return EventArrays(t, x, y, pol, int(x.max()) if n else 0, int(y.max()) if n else 0, bad_p, back)
 
 
 def decode_frame(payload, at: int, source: str) -> FrameData:
