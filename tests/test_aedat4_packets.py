@@ -37,7 +37,7 @@ def _payload(t, x, y, pbyte) -> bytes:
     return bytes(buf)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=40, deadline=None)
 @given(st.data())
 def test_decode_events_matches_structured_dtype(data):
     n = data.draw(st.integers(0, 300))
@@ -58,7 +58,7 @@ def test_decode_events_matches_structured_dtype(data):
     assert np.array_equal(got.pol, want_pol) and got.pol.dtype == np.int8
     assert got.max_x == (int((x % 65536).max()) if n else 0) and got.max_y == (int((y % 65536).max()) if n else 0)
     assert got.bad_polarity == int(np.count_nonzero(pbyte > 1))
-    assert got.backward == int(np.count_nonzero(np.diff(t) < 0))
+    assert got.backward == int(np.count_nonzero(t[1:] < t[:-1]))     # (np.diff would overflow at +-2^62)
 
 
 @pytest.mark.parametrize("comp", [1, 3])

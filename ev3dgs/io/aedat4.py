@@ -111,6 +111,7 @@ class Aedat4Reader(RecordingReader):
 
     # ------------------------------------------------------------------ public API
     def close(self) -> None:
+        self._reader.close()
         self._f.close()
 
     def streams(self) -> list[StreamInfo]:

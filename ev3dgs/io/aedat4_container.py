@@ -162,7 +162,7 @@ def _load_table(f, c: Container, tp: int, warn) -> bool:
     bad = (off - 8 < c.data_start) | (ends > tp) | (sid < 0) | (a["elements"] < 0) | (a["t_end"] < a["t_start"])
     if count > 1:
         bad[1:] |= off[1:] - 8 < ends[:-1]
-    if c.streams:
+    if c.streams and not set(np.unique(sid).tolist()) <= set(c.streams):
         bad |= ~np.isin(sid, np.fromiter(c.streams, np.int64))
     if bad.any():
         i = int(np.argmax(bad))

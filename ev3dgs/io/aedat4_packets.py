@@ -6,9 +6,10 @@ with cramjam's `decompress_into` into a per-thread scratch buffer that is reused
 allocation, no page faults and no extra copy per packet; the buffer stays in cache); a packet larger than the
 buffer takes the bounded streaming path once and the buffer grows to fit it. The Event structs are then copied
 out of that buffer in one memcpy (t, x, y are strided views of the copy; p is computed), together with the
-statistics the per-packet checks need (largest x and y, bad polarity bytes, backward time steps), so the checks themselves cost a few
-scalar comparisons on intact data. Decompression and numpy's copies and reductions run without the GIL, so
-`threads` > 1 overlaps packets on several cores; memory stays bounded by 2 x threads packets in flight.
+statistics the per-packet checks need (largest x and y, bad polarity bytes, backward time steps), so the
+checks themselves cost a few scalar comparisons on intact data. Decompression and numpy's copies and reductions run without the GIL, so
+`threads` > 1 overlaps packets on several cores; memory stays bounded by threads + 1 groups of packets
+(GROUP_BYTES compressed bytes each, or one larger packet) in flight and one scratch buffer per thread.
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ EVENT_DTYPE = np.dtype({"names": ["t", "x", "y", "p"], "formats": ["<i8", "<i2",
                         "offsets": [0, 8, 10, 12], "itemsize": 16})
 MAX_DECOMPRESSED = 1 << 30          # no packet may claim more than 1 GiB once decompressed
 _SCRATCH0 = 1 << 20                 # first size of a thread's scratch buffer (grows to the largest packet)
+GROUP_BYTES = 256 << 10             # thread pool: consecutive packets decoded by one task, in compressed bytes
 _CHUNK = 8 << 20
 HDR = struct.Struct("<iI")
 IMU_FIELDS = {"t": (0, "<i8"), "temp": (1, "<f4"), "ax": (2, "<f4"), "ay": (3, "<f4"), "az": (4, "<f4"),
@@ -222,6 +224,20 @@ class PacketReader:
 
     def __init__(self, f, off: np.ndarray, size: np.ndarray, sid: np.ndarray, compression: int, path: str) -> None:
         self.f, self.off, self.size, self.sid, self.comp, self.path = f, off, size, sid, compression, path
+        self._pool: ThreadPoolExecutor | None = None      # kept while the reader is open: its threads keep
+        self._pool_threads = 0                              # their grown scratch buffers from read to read
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def _executor(self, threads: int) -> ThreadPoolExecutor:
+        if self._pool is None or self._pool_threads != threads:
+            self.close()
+            self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="aedat4")
+            self._pool_threads = threads
+        return self._pool
 
     def raw(self, i: int) -> tuple[bytes, int]:
         off, n, sid = int(self.off[i]), int(self.size[i]), int(self.sid[i])
@@ -260,28 +276,42 @@ class PacketReader:
         except (AedatError, Skip) as e:
             return e
 
+    def _attempt_group(self, group: list[int], kind: str, source: str) -> list:
+        return [self._attempt(i, kind, source) for i in group]
+
     def iterate(self, todo: list[int], kind: str, source: str, threads: int):
         """Yield (i, decoded packet or the AedatError/Skip it raised) for i in `todo`, in order. With
-        threads > 1 a pool decodes up to 2 x threads packets ahead of the consumer; errors still surface in
-        order, and abandoning the iteration cancels what was queued."""
+        threads > 1 a pool decodes groups of consecutive packets (GROUP_BYTES compressed bytes at least, so
+        that small packets do not pay a task each) up to 2 x threads groups ahead of the consumer; errors still
+        surface in order, and abandoning the iteration cancels what was queued. At most threads + 1 groups are
+        decoded or waiting at any time."""
         if threads <= 1 or len(todo) < 2:
             for i in todo:
                 yield i, self._attempt(i, kind, source)
             return
-        with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="aedat4") as pool:
-            queued: deque = deque()
-            nxt = iter(todo)
-            try:
-                for i in nxt:
-                    queued.append((i, pool.submit(self._attempt, i, kind, source)))
-                    if len(queued) >= 2 * threads:
-                        break
-                while queued:
-                    i, fut = queued.popleft()
-                    j = next(nxt, None)
-                    if j is not None:
-                        queued.append((j, pool.submit(self._attempt, j, kind, source)))
-                    yield i, fut.result()
-            finally:
-                for _, fut in queued:
-                    fut.cancel()
+        groups, cur, acc = [], [], 0
+        for i in todo:
+            cur.append(i)
+            acc += int(self.size[i])
+            if acc >= GROUP_BYTES:
+                groups.append(cur)
+                cur, acc = [], 0
+        if cur:
+            groups.append(cur)
+        pool = self._executor(threads)
+        queued: deque = deque()
+        nxt = iter(groups)
+        try:
+            for g in nxt:
+                queued.append((g, pool.submit(self._attempt_group, g, kind, source)))
+                if len(queued) > threads:
+                    break
+            while queued:
+                g, fut = queued.popleft()
+                h = next(nxt, None)
+                if h is not None:
+                    queued.append((h, pool.submit(self._attempt_group, h, kind, source)))
+                yield from zip(g, fut.result())
+        finally:
+            for _, fut in queued:
+                fut.cancel()
