@@ -91,7 +91,8 @@ def test_decompress_errors_name_the_byte():
     with pytest.raises(AedatError, match="byte 77: lz4 decompression failed"):
         P.decompress(good[:-7] + b"\xff" * 7, 1, 77)
     short = lz4.frame.compress(struct.pack("<I", 100) + bytes(50))     # size prefix says 104 bytes, 54 present
-    with pytest.raises(AedatError, match="byte 5: packet decompresses to 54 bytes but its flatbuffer size prefix says 104"):
+    with pytest.raises(AedatError, match="byte 5: packet decompresses to 54 bytes but its flatbuffer size prefix "
+                                         "says 104"):
         P.decompress(short, 1, 5)
 
 
@@ -100,7 +101,8 @@ def _read(path, threads):
         warnings.simplefilter("ignore")
         with Aedat4Reader(path, threads=threads) as r:
             ev = Events.concatenate(list(r.events()))
-            return ev, list(r.frames()), r.imu(), r.triggers(), list(r.warnings)
+            pooled = r._reader._pool is not None         # the events stream was shared out to the pool
+            return ev, list(r.frames()), r.imu(), r.triggers(), list(r.warnings), pooled
 
 
 @needs_shared
@@ -117,6 +119,7 @@ def test_threads_give_identical_results(tmp_path, damage):
     p = tmp_path / "s.aedat4"
     p.write_bytes(bytes(data))
     one, two = _read(p, 1), _read(p, 2)
+    assert not one[5] and two[5]
     for a, b in zip((one[0].t, one[0].x, one[0].y, one[0].p), (two[0].t, two[0].x, two[0].y, two[0].p)):
         assert np.array_equal(a, b)
     assert [f.timestamp for f in one[1]] == [f.timestamp for f in two[1]]

@@ -18,7 +18,7 @@ from .aedat4_container import MAGIC, read_container
 from .aedat4_packets import COMPRESSIONS, EVENT_DTYPE, IDENTS, KINDS, IMU_FIELDS, PacketReader, Skip, summary
 from .checks import StreamChecks
 from .flatbuf import FlatbufError, root
-from .types import AedatError, AedatWarning, FrameData, ImuData, RecordingReader, StreamInfo, Triggers
+from .types import AedatError, AedatWarning, ImuData, RecordingReader, StreamInfo, Triggers
 
 __all__ = ["Aedat4Reader", "AedatWarning", "info", "MAGIC", "EVENT_DTYPE", "COMPRESSIONS", "THREADS"]
 

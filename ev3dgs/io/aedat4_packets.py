@@ -7,9 +7,11 @@ allocation, no page faults and no extra copy per packet; the buffer stays in cac
 buffer takes the bounded streaming path once and the buffer grows to fit it. The Event structs are then copied
 out of that buffer in one memcpy (t, x, y are strided views of the copy; p is computed), together with the
 statistics the per-packet checks need (largest x and y, bad polarity bytes, backward time steps), so the
-checks themselves cost a few scalar comparisons on intact data. Decompression and numpy's copies and reductions run without the GIL, so
-`threads` > 1 overlaps packets on several cores; memory stays bounded by threads + 1 groups of packets
-(GROUP_BYTES compressed bytes each, or one larger packet) in flight and one scratch buffer per thread.
+checks themselves cost a few scalar comparisons on intact data. Decompression and numpy's copies and
+reductions run without the GIL, so `threads` > 1 overlaps packets on several cores (a stream of fewer than
+threads + 1 groups of GROUP_BYTES compressed bytes is decoded in the calling thread); memory stays bounded by
+threads + 1 groups of packets (GROUP_BYTES compressed bytes each, or one larger packet) in flight and one
+scratch buffer per thread.
 """
 from __future__ import annotations
 
@@ -139,7 +141,8 @@ def parse(payload, kind: str, at: int):
 @dataclass
 class EventArrays:
     """One events packet unpacked: t (int64), x, y (uint16; a negative int16 coordinate reads as >= 32768;
-    strided views of the packet's own copy of the Event structs), pol (int8 +1/-1, -128 for a stored byte other than 0/1) and the statistics the checks use."""
+    strided views of the packet's own copy of the Event structs), pol (int8 +1/-1, -128 for a stored byte
+    other than 0/1) and the statistics the checks use."""
     t: np.ndarray
     x: np.ndarray
     y: np.ndarray
@@ -245,7 +248,8 @@ class PacketReader:
             raise AedatError(f"{self.path}: the reader is closed")
         raw = os.pread(self.f.fileno(), n + 8, off - 8)
         if len(raw) < n + 8:
-            raise AedatError(f"byte {off - 8}: file ends inside the packet ({n} bytes): was it truncated since opening?")
+            raise AedatError(f"byte {off - 8}: file ends inside the packet ({n} bytes): was it truncated since "
+                             "opening?")
         if HDR.unpack_from(raw) != (sid, n):
             hs, hn = HDR.unpack_from(raw)
             raise AedatError(f"byte {off - 8}: packet header (stream {hs}, {hn} bytes) does not match the "
@@ -285,12 +289,8 @@ class PacketReader:
         that small packets do not pay a task each) up to 2 x threads groups ahead of the consumer; errors still
         surface in order, and abandoning the iteration cancels what was queued. At most threads + 1 groups are
         decoded or waiting at any time."""
-        if threads <= 1 or len(todo) < 2:
-            for i in todo:
-                yield i, self._attempt(i, kind, source)
-            return
         groups, cur, acc = [], [], 0
-        for i in todo:
+        for i in (todo if threads > 1 else ()):
             cur.append(i)
             acc += int(self.size[i])
             if acc >= GROUP_BYTES:
@@ -298,6 +298,10 @@ class PacketReader:
                 cur, acc = [], 0
         if cur:
             groups.append(cur)
+        if len(groups) <= threads:          # too little to share out: decode in the calling thread
+            for i in todo:
+                yield i, self._attempt(i, kind, source)
+            return
         pool = self._executor(threads)
         queued: deque = deque()
         nxt = iter(groups)
