@@ -161,3 +161,32 @@ def test_info_reads_only_header_and_table(tmp_path, monkeypatch):
     assert cheap["streams"] == scanned["streams"]
     ev = cheap["streams"][0]
     assert (ev["packets"], ev["elements"], ev["t_start"], ev["t_end"]) == (8, 50_000, 1_000, int(t[-1]))
+
+
+def test_block_pool_reuses_only_unreferenced_blocks():
+    pool = P.BlockPool(keep=2)
+    a = pool(1000)
+    a[:] = 1
+    b = pool(1000)                                       # a is still referenced: a different block
+    assert not np.shares_memory(a, b)
+    view = a[10:20].view(np.int16)                       # a view keeps a's block busy after a is dropped
+    del a
+    c = pool(1000)
+    assert not np.shares_memory(c, view) and not np.shares_memory(c, b)
+    assert (view == 0x0101).all()                        # untouched
+    del view, c
+    d = pool(900)                                        # now a free block is handed out again
+    assert any(np.shares_memory(d, blk) for blk in pool._blocks)
+    big = pool(5 * P.BlockPool.MIN_BLOCK)                # larger than every kept block: fresh memory
+    assert big.size == 5 * P.BlockPool.MIN_BLOCK and len(pool._blocks) == 2
+
+
+@needs_shared
+def test_chunks_kept_by_the_consumer_stay_intact():
+    """Holding every chunk (no block can be reused) and dropping each at once (blocks reused) give the same."""
+    with Aedat4Reader(SHARED, threads=1) as r:
+        kept = list(r.events())
+        sums = [(int(e.t.sum()), int(e.x.astype(np.int64).sum()), int(e.p.sum())) for e in r.events()]
+    assert [(int(e.t.sum()), int(e.x.astype(np.int64).sum()), int(e.p.sum())) for e in kept] == sums
+    ev = Events.concatenate(kept)
+    assert len(ev) == 117_667 and int(ev.x.astype(np.int64).sum()) == 17_676_033
