@@ -190,3 +190,20 @@ def test_chunks_kept_by_the_consumer_stay_intact():
     assert [(int(e.t.sum()), int(e.x.astype(np.int64).sum()), int(e.p.sum())) for e in kept] == sums
     ev = Events.concatenate(kept)
     assert len(ev) == 117_667 and int(ev.x.astype(np.int64).sum()) == 17_676_033
+
+
+@pytest.mark.parametrize("delta", [-1, 0, 5])
+def test_inplace_decompression_with_wrong_table_counts(tmp_path, delta):
+    """Packets are decompressed straight into a block sized from the FileDataTable's element count; a count
+    that is too small (the packet does not fit) or too large falls back to the scratch buffer with the same
+    events (the checks then report the count mismatch)."""
+    p = tmp_path / "f.aedat4"
+    t = np.arange(30_000) * 2 + 500
+    write_aedat4(p, 64, 48, Events(t, t % 64, (t // 64) % 48, np.where(t % 3, 1, -1)), packet_events=4_000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with Aedat4Reader(p, threads=1) as r:
+            r._reader.elements = r._reader.elements + delta     # what the reader uses to size the block
+            ev = Events.concatenate(list(r.events()))
+    assert np.array_equal(ev.t, t) and np.array_equal(ev.x, t % 64) and np.array_equal(ev.y, (t // 64) % 48)
+    assert np.array_equal(ev.p, np.where(t % 3, 1, -1))

@@ -12,7 +12,8 @@ for wall time (speed) and for CPU time (work: on a machine whose cores are busy 
 mostly measures waiting, and a decoding thread cannot overlap anything).
 A warm-up child loads (and the first time ever compiles) the numba kernel before timing.
 
-    python tools/bench_aedat.py --events 20000000 --rounds 5 --json tools/results/bench_aedat.json
+    git archive b894e45 ev3dgs | tar -x -C /tmp/prev      # optional: the reader before this work
+    python tools/bench_aedat.py --events 20000000 --rounds 5 --previous /tmp/prev
 """
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ from pathlib import Path
 from pareto import save_json
 
 SHARED = Path("/work/shared/data/aedat/aestream_davis.aedat4")
-READERS = ("ours-1thread", "ours-2threads", "dv-processing")
+READERS = ["ours-1thread", "ours-2threads", "dv-processing"]
+PREVIOUS: str | None = None     # --previous: an older ev3dgs tree whose reader runs as "previous" (threads: its own)
 
 
 def make_dv_file(path: Path, n_events: int) -> None:
@@ -69,14 +71,14 @@ def make_tiled_file(path: Path, n_events: int, compression: str) -> None:
 
 def read_once(reader: str, path: str, inner: int) -> dict:
     """Runs in a child process: import, then time `inner` reads and measure the peak RSS growth."""
-    if reader.startswith("ours"):
+    if reader.startswith("ours") or reader == "previous":
         from ev3dgs.io.aedat4 import Aedat4Reader
 
-        threads = 1 if reader == "ours-1thread" else 2
+        kw = {} if reader == "previous" else {"threads": 1 if reader == "ours-1thread" else 2}
 
         def run():
             n = 0
-            with Aedat4Reader(path, threads=threads) as r:
+            with Aedat4Reader(path, **kw) as r:
                 for ev in r.events():
                     n += len(ev)
             return n
@@ -108,8 +110,11 @@ def _status_kb(key: str) -> int:
 
 
 def _child(reader: str, path: Path, inner: int) -> dict:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+    if reader == "previous":
+        env["PYTHONPATH"] = PREVIOUS
     out = subprocess.run([sys.executable, __file__, "--child", reader, str(path), str(inner)], capture_output=True,
-                         text=True, env={**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"})
+                         text=True, env=env)
     if out.returncode != 0:
         raise RuntimeError(f"{reader} on {path.name}: {out.stderr.strip().splitlines()[-1] if out.stderr else '?'}")
     return json.loads(out.stdout)
@@ -149,6 +154,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=5, help="interleaved rounds per file (default 5)")
     ap.add_argument("--inner", type=int, default=20,
                     help="reads per child process of the small shared recording (default 20)")
+    ap.add_argument("--previous", metavar="DIR",
+                    help="also time the AEDAT 4 reader of an older ev3dgs tree in DIR (e.g. `git archive <commit> "
+                         "ev3dgs | tar -x -C DIR`) as 'previous' (default: none)")
     ap.add_argument("--child", nargs=3, metavar=("READER", "FILE", "INNER"), help=argparse.SUPPRESS)
     ap.add_argument("--json", default="tools/results/bench_aedat.json", help="output JSON (default %(default)s)")
     ap.add_argument("--plot", default="tools/results/bench_aedat.png", help="output plot (default %(default)s)")
@@ -156,6 +164,10 @@ def main(argv=None) -> int:
     if args.child:
         print(json.dumps(read_once(args.child[0], args.child[1], int(args.child[2]))))
         return 0
+    global PREVIOUS
+    if args.previous:
+        PREVIOUS = str(Path(args.previous).resolve())
+        READERS.insert(0, "previous")
     load0 = os.getloadavg()
     results = []
     with tempfile.TemporaryDirectory() as d:
@@ -172,7 +184,8 @@ def main(argv=None) -> int:
             results.append(bench_file(label, p, args.rounds, 1))
             p.unlink()
     note = f", load average {load0[0]:.1f} at start, {os.getloadavg()[0]:.1f} at end"
-    save_json(args.json, {"rounds": args.rounds, "events": args.events, "files": results}, note)
+    save_json(args.json, {"rounds": args.rounds, "events": args.events, "previous": args.previous,
+                          "files": results}, note)
     plot(results, args.plot)
     return 0
 
@@ -186,18 +199,20 @@ def plot(results, path):
 
     fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
     xs = np.arange(len(results))
-    ours = [r for r in READERS if r.startswith("ours")]
+    ours = [r for r in READERS if r != "dv-processing"]
+    wid = 0.8 / len(ours)
     for k, reader in enumerate(ours):
         rows = [next(x for x in f["rows"] if x["reader"] == reader) for f in results]
         med = np.array([r["vs_dv_processing"] for r in rows])
         lo = med - np.array([r["vs_dv_processing_range"][0] for r in rows])
         hi = np.array([r["vs_dv_processing_range"][1] for r in rows]) - med
-        ax[0].bar(xs + (k - 0.5) * 0.38, med, 0.38, yerr=[lo, hi], capsize=3, label=reader)
+        ax[0].bar(xs + (k - (len(ours) - 1) / 2) * wid, med, wid, yerr=[lo, hi], capsize=3, label=reader)
     ax[0].axhline(1.0, color="k", lw=0.8, ls="--")
     ax[0].set_ylabel("speed / dv-processing (>1: faster)")
+    wid = 0.8 / len(READERS)
     for k, reader in enumerate(READERS):
         rows = [next(x for x in f["rows"] if x["reader"] == reader) for f in results]
-        ax[1].bar(xs + (k - 1) * 0.27, [r["peak_growth_mb"] for r in rows], 0.27, label=reader)
+        ax[1].bar(xs + (k - (len(READERS) - 1) / 2) * wid, [r["peak_growth_mb"] for r in rows], wid, label=reader)
     ax[1].set_ylabel("peak RSS growth during the read (MB)")
     for a in ax:
         a.set_xticks(xs, [f["file"] for f in results], fontsize=7)

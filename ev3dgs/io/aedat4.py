@@ -58,7 +58,7 @@ class Aedat4Reader(RecordingReader):
         self.table_position, self.info_xml, self.has_table = c.table_position, c.info_xml, c.has_table
         self._streams = c.streams
         self._off, self._size, self._sid, self._nel, self._t0, self._t1 = c.off, c.size, c.sid, c.nel, c.t0, c.t1
-        self._reader = PacketReader(self._f, c.off, c.size, c.sid, c.compression, self.path)
+        self._reader = PacketReader(self._f, c.off, c.size, c.sid, c.compression, self.path, c.nel)
         for s in self._streams.values():
             if s.kind == "other" and s.packets:
                 self._guess_kind(s)

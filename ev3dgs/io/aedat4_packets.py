@@ -97,15 +97,23 @@ def _inflate_stream(data, comp: int, at: int) -> bytearray:
 _local = threading.local()
 
 
-def decompress(data, comp: int, at: int) -> np.ndarray:
-    """The decompressed payload of one packet as a uint8 array. For compressed packets it is a view of this
-    thread's scratch buffer: valid only until this thread's next call (copy what must outlive it)."""
+def decompress(data, comp: int, at: int, out: np.ndarray | None = None) -> np.ndarray:
+    """The decompressed payload of one packet as a uint8 array. For compressed packets it is a view of `out`
+    when the payload fits there, else of this thread's scratch buffer, valid only until this thread's next call
+    (copy what must outlive it)."""
     if comp == 0:
         return np.frombuffer(data, np.uint8)
+    codec = cramjam.lz4 if comp in (1, 2) else cramjam.zstd
+    if out is not None:
+        try:
+            n = codec.decompress_into(data, out)
+        except cramjam.DecompressionError:
+            pass                            # too small for this packet, or corrupt: the scratch path says which
+        else:
+            return _checked(out, n, at)
     buf = getattr(_local, "buf", None)
     if buf is None:
         buf = _local.buf = np.empty(_SCRATCH0, np.uint8)
-    codec = cramjam.lz4 if comp in (1, 2) else cramjam.zstd
     try:
         n = codec.decompress_into(data, buf)
     except cramjam.DecompressionError as e:
@@ -119,6 +127,10 @@ def decompress(data, comp: int, at: int) -> np.ndarray:
             raise AedatError(f"byte {at}: {COMPRESSIONS[comp]} decompression failed: {e}") from None
         _local.buf = np.empty(1 << (len(out) - 1).bit_length(), np.uint8)   # fits the largest packet so far
         return np.frombuffer(out, np.uint8)
+    return _checked(buf, n, at)
+
+
+def _checked(buf: np.ndarray, n: int, at: int) -> np.ndarray:
     if n < 4:
         raise AedatError(f"byte {at}: packet decompresses to {n} bytes, too short for a flatbuffer")
     total = 4 + int(buf[:4].view("<u4")[0])
@@ -162,17 +174,22 @@ def _fresh(nbytes: int) -> np.ndarray:
     return np.empty(nbytes, np.uint8)
 
 
-def decode_events(payload, at: int, alloc=_fresh) -> EventArrays:
-    """Unpack an events packet: the Event structs are copied out of the (scratch) payload in one memcpy into
-    memory from alloc(bytes) (a BlockPool's, or fresh), t, x, y are strided views of that copy and pol is
-    computed next to it; the statistics for the checks take a few vectorised passes (numpy releases the GIL
-    for them)."""
+def decode_events(payload, at: int, alloc=_fresh, pol_out: np.ndarray | None = None) -> EventArrays:
+    """Unpack an events packet: t, x, y are strided views of the Event structs and pol is computed into
+    pol_out (n bytes) when given: the payload then already lives in memory of its own (a BlockPool block).
+    Otherwise the structs are first copied out of the (scratch) payload in one memcpy into memory from
+    alloc(bytes). The statistics for the checks take a few vectorised passes (numpy releases the GIL)."""
     tab, body = parse(payload, "events", at)
     start, n = tab.vector(0, EVENT_DTYPE.itemsize)
     size = EVENT_DTYPE.itemsize * n
-    mem = alloc(size + n)
-    b = mem[:size]
-    b[:] = np.frombuffer(body, np.uint8, count=size, offset=start)
+    if pol_out is not None and len(pol_out) == n:
+        b = np.frombuffer(body, np.uint8, count=size, offset=start)
+        mem = pol_out
+        size = 0
+    else:
+        mem = alloc(size + n)
+        b = mem[:size]
+        b[:] = np.frombuffer(body, np.uint8, count=size, offset=start)
     u16 = b.view(_U2)
     t, x, y = b.view(_I8)[0::2], u16[4::8], u16[5::8]
     pb = b[12::16]                                      # stored polarity byte: 0 (OFF) or 1 (ON)
@@ -261,8 +278,10 @@ def summary(payload, at: int, kind: str) -> tuple[int, int, int]:
 class PacketReader:
     """Reads packet i of an indexed file (positioned reads: safe from worker threads) and decodes it."""
 
-    def __init__(self, f, off: np.ndarray, size: np.ndarray, sid: np.ndarray, compression: int, path: str) -> None:
+    def __init__(self, f, off: np.ndarray, size: np.ndarray, sid: np.ndarray, compression: int, path: str,
+                 elements: np.ndarray | None = None) -> None:
         self.f, self.off, self.size, self.sid, self.comp, self.path = f, off, size, sid, compression, path
+        self.elements = elements            # per packet, from the FileDataTable (None without one)
         self.blocks = BlockPool(keep=16)
         self._pool: ThreadPoolExecutor | None = None      # kept while the reader is open: its threads keep
         self._pool_threads = 0                              # their grown scratch buffers from read to read
@@ -307,10 +326,19 @@ class PacketReader:
     def decode(self, i: int, kind: str, source: str = ""):
         """Packet i decoded as `kind`: EventArrays, FrameData or a dict of sample arrays."""
         raw, off = self.raw(i)
-        payload = decompress(memoryview(raw)[8:], self.comp, off)
         try:
             if kind == "events":
-                return decode_events(payload, off, self.blocks)
+                if self.comp and self.elements is not None and 17 * int(self.elements[i]) < _cap(raw) // 2:
+                    # decompress straight into a reused block sized from the table's element count (a size-
+                    # prefixed EVTS flatbuffer is 16 bytes per event plus < 64), pol after it: no memcpy
+                    k = int(self.elements[i])
+                    need = 16 * k + 64
+                    mem = self.blocks(need + k)
+                    payload = decompress(memoryview(raw)[8:], self.comp, off, mem[:need])
+                    inplace = np.shares_memory(payload, mem)
+                    return decode_events(payload, off, self.blocks, mem[need:] if inplace else None)
+                return decode_events(decompress(memoryview(raw)[8:], self.comp, off), off, self.blocks)
+            payload = decompress(memoryview(raw)[8:], self.comp, off)
             if kind == "frames":
                 return decode_frame(payload, off, source)
             return decode_vector(payload, off, kind)
