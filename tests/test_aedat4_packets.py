@@ -207,3 +207,13 @@ def test_inplace_decompression_with_wrong_table_counts(tmp_path, delta):
             ev = Events.concatenate(list(r.events()))
     assert np.array_equal(ev.t, t) and np.array_equal(ev.x, t % 64) and np.array_equal(ev.y, (t // 64) % 48)
     assert np.array_equal(ev.p, np.where(t % 3, 1, -1))
+
+
+@pytest.mark.parametrize("cores, load, want", [(4, 0.2, 2), (4, 2.4, 2), (4, 2.6, 1), (2, 0.4, 2), (2, 9.0, 1),
+                                               (1, 0.0, 1)])
+def test_default_threads_follow_idle_cores(monkeypatch, cores, load, want):
+    import ev3dgs.io.aedat4 as A
+
+    monkeypatch.setattr(A.os, "sched_getaffinity", lambda pid: set(range(cores)), raising=False)
+    monkeypatch.setattr(A.os, "getloadavg", lambda: (load, load, load))
+    assert A.default_threads() == want

@@ -22,9 +22,21 @@ from .types import AedatError, AedatWarning, ImuData, RecordingReader, StreamInf
 
 __all__ = ["Aedat4Reader", "AedatWarning", "info", "MAGIC", "EVENT_DTYPE", "COMPRESSIONS", "THREADS"]
 
-# Packets decoded at once by default: decompression and unpacking release the GIL, so 2 threads overlap two
-# packets where two cores are free (see tools/bench_aedat.py); 1 decodes in the calling thread.
-THREADS = 2 if (os.cpu_count() or 1) >= 2 else 1
+# Packets decoded at once by default. Decompression and numpy's unpacking release the GIL (tools/probe_gil.py),
+# so 2 threads can overlap two packets, but only on a core nobody else is using: on a machine whose cores are
+# busy the second thread only adds work (tools/bench_aedat.py, load ~10 on 2 cores: 2 threads 0.55-0.79x
+# dv-processing, 1 thread 0.64-0.87x). THREADS = None picks 2 when the 1-minute load average leaves a core
+# idle, else 1; set an int to force.
+THREADS: int | None = None
+
+
+def default_threads() -> int:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = float(cores)
+    return 2 if cores >= 2 and load <= cores - 1.5 else 1
 
 
 class Aedat4Reader(RecordingReader):
@@ -33,7 +45,8 @@ class Aedat4Reader(RecordingReader):
     Every decoded packet is checked against what the file states (ev3dgs.io.checks): a corrupt packet is
     skipped, and values the file contradicts are dropped, with a warning naming the stream, packet and byte;
     with strict=True they raise AedatError instead. skip_corrupt=True/False is the older spelling of
-    strict=False/True. `threads` packets are decoded at once (default THREADS; 1: in the calling thread)."""
+    strict=False/True. `threads` packets are decoded at once (default: THREADS, or default_threads(): 2 when a
+    core is idle, else 1; 1 decodes in the calling thread)."""
 
     format = "aedat4"
 
@@ -42,7 +55,7 @@ class Aedat4Reader(RecordingReader):
         self.path = os.fspath(path)
         self.warnings: list[str] = []
         self.strict = strict if skip_corrupt is None else not skip_corrupt
-        self.threads = THREADS if threads is None else int(threads)
+        self.threads = (THREADS or default_threads()) if threads is None else int(threads)
         if self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
         try:
