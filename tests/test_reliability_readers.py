@@ -214,6 +214,12 @@ def test_cli_strict(shared, tmp_path, capsys, cmd):
     assert not (tmp_path / "s.h5").exists()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        code = main([cmd, str(p), *extra])
+        code = main([cmd, str(p), *extra, *(["--scan"] if cmd == "info" else [])])
     out = capsys.readouterr()
     assert code == 0 and "x/y outside the 346x260 sensor" in out.out + out.err
+    if cmd == "info":   # without --scan, info reads the header and the FileDataTable only: nothing decoded
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            code = main([cmd, str(p)])
+        out = capsys.readouterr()
+        assert code == 0 and "scanned: False" in out.out and "outside" not in out.out + out.err

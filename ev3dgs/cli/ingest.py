@@ -56,7 +56,8 @@ def _info(args) -> int:
         with warnings.catch_warnings():     # the reader lists its warnings; print each once, below
             warnings.simplefilter("ignore")
             with open_recording(args.file, strict=args.strict, sensor_size=args.sensor_size) as reader:
-                info = reader.info()
+                # AEDAT 4 info reads only the header and packet table unless asked to decode and check
+                info = reader.info(scan=args.scan or args.strict) if reader.format == "aedat4" else reader.info()
         print(f"{args.file}: {reader.format}")
         for key, value in (info.items() if isinstance(info, dict) else vars(info).items()):
             if key != "warnings":
@@ -110,9 +111,13 @@ def build_parser():
     sub = subparsers(p)
     i = sub.add_parser("info", help="summarise a recording (.aedat4/.aedat/.aedat3) or a scene file (.h5)")
     i.add_argument("file", help="recording (.aedat4/.aedat/.aedat3) or scene file (.h5)")
+    i.add_argument("--scan", action="store_true",
+                   help="AEDAT 4.0: also decode and check every packet, as reading does (default: off: only the header "
+                        "and the packet table are read, counts and time ranges come from the FileDataTable; AEDAT "
+                        "2.0/3.1 recordings are always scanned)")
     i.add_argument("--strict", action="store_true",
-                   help="fail (exit 2) on the first corrupt packet or value the recording contradicts (default: off: "
-                        "drop it with a warning)")
+                   help="fail (exit 2) on the first corrupt packet or value the recording contradicts; implies "
+                        "--scan (default: off: drop it with a warning)")
     i.add_argument("--sensor-size", type=_sensor_size, metavar="WxH",
                    help="sensor size of an AEDAT 2.0/3.1 recording whose header names no camera, e.g. 240x180 "
                         "(default: from the header; without one, inferred from the addresses with a warning)")

@@ -4,8 +4,9 @@ A damaged recording must never give silent garbage: every decoded value that the
 namely coordinates outside the sensor size the file declares, a polarity byte other than 0/1, a timestamp
 outside the FileDataTable's range for its packet, timestamps going backwards within a stream, a duplicated
 packet, element counts that disagree with the packet table, and implausible timestamp "wraps" (AEDAT 2.0).
-The checks are vectorised numpy with a fast path (a few reductions per packet) for intact data; only a packet
-that fails them takes the slow path, which keeps the largest consistent part of it. With strict=True the
+The checks have a fast path for intact data (AEDAT 4: scalar comparisons of statistics gathered while the
+packet is unpacked; AEDAT 2.0/3.1: a few vectorised reductions); only a packet that fails them takes the slow
+path, which keeps the largest consistent part of it. With strict=True the
 reader raises an AedatError naming the byte instead of dropping anything.
 """
 from __future__ import annotations
@@ -20,8 +21,6 @@ from .types import AedatError
 I64_MIN, I64_MAX = np.iinfo(np.int64).min, np.iinfo(np.int64).max
 TRIGGER_KINDS = 10               # AEDAT 4 TriggerType: 0 (timestamp reset) .. 9 (APS exposure end)
 MAX_ACCEL_G, MAX_GYRO_DPS, TEMP_C = 64.0, 8000.0, (-100.0, 200.0)   # beyond any MEMS IMU's range
-POLARITY = np.full(256, -128, np.int8)        # AEDAT 4 stored byte 0/1 -> -1/+1; any other byte -> -128 (bad)
-POLARITY[:2] = -1, 1
 
 
 def lnds_mask(t: np.ndarray) -> np.ndarray:
@@ -122,22 +121,24 @@ class StreamChecks:
         if len(kt):
             self.last = int(kt[-1]) if self.last is None else max(self.last, int(kt[-1]))
 
-    def events(self, i: int, t, x, y, p) -> Events | None:
-        """Raw decoded arrays of an events packet (p the stored byte) -> checked Events (None: nothing left)."""
+    def events(self, i: int, a) -> Events | None:
+        """An unpacked events packet (aedat4_packets.EventArrays: arrays and their statistics) -> checked
+        Events (None: nothing left). Intact data costs a few scalar comparisons of the statistics."""
+        t, x, y, pol = a.t, a.x, a.y, a.pol
         n, (lo, hi), w, h = len(t), self._range(i), self.s.width, self.s.height
         reasons: dict = {}
         if self._pre(i, t, reasons):
             self._problem(i, n, n, reasons, "events")
             return None
         keep = None
-        pol = POLARITY[p]                             # contiguous: its min is far cheaper than p.max()
-        if n and not ((w <= 0 or h <= 0 or (x.max() < w and y.max() < h)) and pol.min() > -128
-                      and t[0] >= lo and t[-1] <= hi and monotonic(t, self.last)):
+        if n and not ((w <= 0 or h <= 0 or (a.max_x < w and a.max_y < h)) and a.bad_polarity == 0
+                      and t[0] >= lo and t[-1] <= hi and a.backward == 0
+                      and (self.last is None or t[0] >= self.last)):
             bad = np.zeros(n, bool)
             if w > 0 and h > 0:
                 bad = (x >= w) | (y >= h)
                 _count(reasons, f"x/y outside the {w}x{h} sensor", bad)
-            badp = (p > 1) & ~bad
+            badp = (pol == -128) & ~bad
             _count(reasons, "a polarity byte other than 0/1", badp)
             keep = time_mask(t, lo, hi, self.last, bad | badp, reasons)
         self._finish(i, keep, n, reasons, "events", t)

@@ -142,6 +142,8 @@ def table_vector(buf, start: int, count: int, fields: dict[str, tuple[int, str]]
     if bad.any():
         i = int(np.argmax(bad))
         raise FlatbufError(int(tpos[i]), f"element {i}: vtable position {int(vt[i])} outside the buffer")
+    if count and (vt == vt[0]).all():
+        return _shared_vtable(u8, tpos, int(vt[0]), count, fields)
     vt_size = gather(u8, vt, "<u2").astype(np.int64)
     t_size = gather(u8, vt + 2, "<u2").astype(np.int64)
     bad = (vt_size < 4) | (vt + vt_size > n) | (t_size < 4) | (tpos + t_size > n)
@@ -164,4 +166,24 @@ def table_vector(buf, start: int, count: int, fields: dict[str, tuple[int, str]]
         if has.any():
             vals[has] = gather(u8, (tpos + off + delta)[has], dt)
         out[name] = vals
+    return out
+
+
+def _shared_vtable(u8: np.ndarray, tpos: np.ndarray, vt: int, count: int, fields) -> dict[str, np.ndarray]:
+    """table_vector when every element uses the one vtable at `vt` (flatbuffers builders deduplicate vtables,
+    so this is the usual case): the layout is read and checked once, then each field is one gather."""
+    n = len(u8)
+    vt_size, t_size = (int(v) for v in np.frombuffer(u8, "<u2", count=2, offset=vt))
+    if vt_size < 4 or vt + vt_size > n or t_size < 4:
+        raise FlatbufError(vt, f"bad vtable ({vt_size}) or table size ({t_size})")
+    if int(tpos.max()) + t_size > n:
+        i = int(np.argmax(tpos + t_size > n))
+        raise FlatbufError(int(tpos[i]), f"element {i}: table of {t_size} bytes runs past the buffer ({n} bytes)")
+    out = {}
+    for name, spec in fields.items():
+        slot, dt, delta = spec[0], np.dtype(spec[1]), (spec[2] if len(spec) > 2 else 0)
+        off = int(np.frombuffer(u8, "<u2", count=1, offset=vt + 4 + 2 * slot)[0]) if vt_size >= 6 + 2 * slot else 0
+        if off and (off < 4 or off + delta + dt.itemsize > t_size):
+            raise FlatbufError(int(tpos[0]), f"element 0: field {slot} offset {off} outside its table")
+        out[name] = gather(u8, tpos + (off + delta), dt) if off else np.zeros(count, dt)
     return out
