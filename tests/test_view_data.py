@@ -298,3 +298,33 @@ def test_without_viser_the_error_names_the_extra(monkeypatch, scene_path, capsys
     assert rc == 2 and "pip install ev3dgs[view]" in err and err.count("\n") == 1
     # the static figure needs no viser
     assert cli.main(["view", scene_path, "--png", str(scene_path) + ".png"]) == 0
+
+
+def test_ingest_records_the_views_that_failed_to_register(tmp_path, monkeypatch):
+    """`ingest davis` keeps the views whose latent frames all registered; the others are listed in the config
+    (pose estimation replaced by a stand-in that drops the middle view of the shared 3-frame recording)."""
+    from types import SimpleNamespace
+
+    from ev3dgs.io import davis
+
+    from test_davis import SHARED as shared
+
+    if not shared.exists():
+        pytest.skip("shared recording not present")
+
+    def fake_estimate(images, ev, views, K, opts):
+        kept = [0, len(views) - 1]
+        t = np.stack([np.linspace(views[i].exposure_start, views[i].exposure_end, opts.subposes).astype(np.int64)
+                      for i in kept])
+        poses = np.tile(np.eye(4), (len(kept), opts.subposes, 1, 1))
+        poses[1, :, 0, 3] = 1.0
+        K = np.array([[200.0, 0, 173], [0, 200.0, 130], [0, 0, 1]])
+        return kept, poses, t, K, SimpleNamespace(points_xyz=None), len(kept) * opts.subposes
+
+    monkeypatch.setattr(davis, "estimate_view_poses", fake_estimate)
+    out = tmp_path / "rec.h5"
+    davis.ingest_davis(shared, out, davis.DavisOptions(events="all"))
+    sc = schema.read(out)
+    rows = sc.config["unregistered_views"]
+    assert [r["frame"] for r in rows] == [1] and len(sc.train) == 2
+    assert data.failed_registrations(sc) == [f"frame 1 (exposure {rows[0]['exposure'][0]}-{rows[0]['exposure'][1]} us)"]

@@ -150,6 +150,8 @@ def draw(content: data.SceneContent | data.RunContent, rows: int = 4):
     title = f"{sc.name or c.path.name} ({sc.source}): {n} training views"
     if run is not None:
         title += f"; run {run.path.name}, {len(run.model)} Gaussians from {run.source}"
+    if not has_poses:
+        title += " (no poses in the file: ingested without pose estimation)"
     if c.failed:
         title += f"; failed to register: {', '.join(c.failed)}"
     fig.suptitle(title, fontsize=9)
