@@ -142,3 +142,22 @@ def test_taken_port_and_all_interfaces_warning(scene_path):
     assert got != port and f"port {port} is in use: using {got}" in err
     assert "warning: --host 0.0.0.0" in err
     assert rc == 0 and "Traceback" not in err
+
+
+def test_train_with_view_then_view_the_checkpoint(scene_path, tmp_path, capsys):
+    """`ev3dgs train --view`: the viewer's URL is printed, training finishes and the viewer stops; a run
+    folder with only ckpt.pt (a run still training) is viewable from its checkpoint."""
+    from ev3dgs.cli import main as cli
+
+    run = tmp_path / "run"
+    rc = cli.main(["train", scene_path, "--out", str(run), "--iterations", "6", "--init-points", "200",
+                   "--sh-degree", "0", "--checkpoint-every", "3", "--threads", "1", "--quiet",
+                   "--view", "--view-every", "3", "--view-port", "0"])
+    out = capsys.readouterr().out
+    assert rc == 0 and re.search(r"ev3dgs view: http://127\.0\.0\.1:\d+", out)
+    (run / "model.pt").unlink()
+    rc_content = data.load(run)
+    assert rc_content.source == "ckpt.pt (step 6)" and len(rc_content.model) > 0
+    with pytest.raises(SystemExit) as e:  # argparse: one line, exit 2
+        cli.main(["train", scene_path, "--out", str(run), "--view", "--view-port", "99999"])
+    assert e.value.code == 2
