@@ -2,6 +2,8 @@
 the live viewer, alternated A B A B ... in one process, one torch thread. The viewer runs its real viser server
 with no client, and with a websocket client that receives every message the browser would get (a Python
 stand-in for the browser: a browser renders on the user's GPU, here it would compete for the same 2 cores).
+Also the cost of one update measured on its own (CPU time of all threads, a client receiving), divided by
+the CPU time of `every` training steps: the overhead that the noisy whole-run ratios bound from above.
 Reports the per-run wall and process CPU time of Trainer.fit (CPU time is far less sensitive to other
 processes on a shared machine), the ratios with/without, the time spent inside the on_step hook,
 and whether the two runs' losses are identical (the viewer must not change the training).
@@ -97,13 +99,37 @@ def one_run(scene: str, iterations: int, every: int | None, out: Path, client: b
             "updates": 0 if every is None else live.updates, "received_bytes": received}
 
 
+def update_cost(scene: str, model, repeats: int = 30) -> dict:
+    """Wall and process CPU time (all threads: the caller's, viser's, the receiving client's) of one viewer
+    update (the on_step hook's work: splat arrays + send) with a client connected, averaged over `repeats`;
+    measured without training beside it, so that other work in the process does not blur it."""
+    from ev3dgs.view.data import load_scene, splat_arrays
+    from ev3dgs.view.server import Viewer
+
+    viewer = Viewer("127.0.0.1", 0)
+    viewer.show_scene(load_scene(scene))
+    cl = Client(viewer.port)
+    time.sleep(1.0)
+    b0 = cl.bytes
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(repeats):
+        viewer.show_splats(splat_arrays(model))
+    time.sleep(1.0)  # let the sends finish (their CPU time is counted; the 1 s idle wait costs ~0, see notes)
+    wall, cpu = time.perf_counter() - t0 - 1.0, time.process_time() - c0
+    sent = cl.bytes - b0
+    cl.close()
+    viewer.stop()
+    return {"gaussians": len(model), "repeats": repeats, "wall_per_update_s": wall / repeats,
+            "cpu_per_update_s": cpu / repeats, "bytes_per_update": sent / repeats}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="demo_out/lego.h5")
     ap.add_argument("--iterations", type=int, default=300)
     ap.add_argument("--pairs", type=int, default=3)
     ap.add_argument("--variants", nargs="+", default=["100", "100+client", "10+client"],
-                    help="--view-every values, +client: with a receiving websocket client")
+                    help="--view-every values, +client: with a receiving websocket client; off: no viewer (A/A)")
     ap.add_argument("--json", default="tools/results/bench_view_overhead.json")
     ap.add_argument("--plot", default="tools/results/bench_view_overhead.png")
     args = ap.parse_args()
@@ -115,7 +141,8 @@ def main() -> None:
             base = one_run(args.scene, args.iterations, None, Path(tmp) / f"a{pair}")
             row = {"pair": pair, "without_s": base["wall_s"], "without_cpu_s": base["cpu_s"]}
             for every in args.variants:
-                n, client = int(every.split("+")[0]), every.endswith("+client")
+                # "off": a second run without the viewer (an A/A control: the spread of identical runs)
+                n, client = (None, False) if every == "off" else (int(every.split("+")[0]), every.endswith("+client"))
                 v = one_run(args.scene, args.iterations, n, Path(tmp) / f"b{pair}_{n}{client}", client)
                 row[f"with_every_{every}_s"] = v["wall_s"]
                 row[f"ratio_every_{every}"] = v["wall_s"] / base["wall_s"]
@@ -136,6 +163,18 @@ def main() -> None:
                                      "cpu_ratio_max": max(c),
                                      "hook_share_median": statistics.median(h),
                                      "all_losses_identical": all(row[f"same_losses_every_{every}"] for row in rows)}
+    from ev3dgs.train.config import TrainConfig
+    from ev3dgs.train.trainer import Trainer
+
+    with tempfile.TemporaryDirectory() as tmp:  # a model of the size the runs above ended with
+        tr = Trainer(TrainConfig(scene=args.scene, iterations=1, threads=1, seed=0), Path(tmp), quiet=True)
+        cost = update_cost(args.scene, tr.model)
+    step_cpu = statistics.median(row["without_cpu_s"] for row in rows) / args.iterations
+    step_wall = statistics.median(row["without_s"] for row in rows) / args.iterations
+    cost["step_cpu_s"], cost["step_wall_s"] = step_cpu, step_wall
+    for every in sorted({int(v.split("+")[0]) for v in args.variants if v != "off"} | {1, 100}):
+        cost[f"overhead_every_{every}"] = cost["cpu_per_update_s"] / (every * step_cpu)
+    summary["update_cost"] = cost
     result = {"scene": args.scene, "iterations": args.iterations, "pairs": args.pairs, "torch_threads": 1,
               "rows": rows, "summary": summary}
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
