@@ -21,6 +21,8 @@ test: setup
 	$(BIN)/python -m pytest -q
 
 test-slow: setup
+	# the browser test (tests/test_view_browser.py) drives the system's Chromium; it skips when there is none
+	command -v chromium >/dev/null || (apt-get update && apt-get install -y chromium) || echo "no chromium: the browser test will skip"
 	# pytest exits 5 when no test is marked slow: that is not a failure
 	$(BIN)/python -m pytest -q -m slow || [ $$? -eq 5 ]
 

@@ -1,4 +1,4 @@
-"""ev3dgs: train / eval / render / export, and scene-file info / validate."""
+"""ev3dgs: train / eval / render / export / view, and scene-file info / validate."""
 from __future__ import annotations
 
 import sys
@@ -73,8 +73,11 @@ def _train(args) -> int:
         cfg = resume_config(args.out, opts, given)
     else:
         cfg = TrainConfig(**opts)
-    trainer = Trainer(cfg, args.out, quiet=args.quiet)
-    rec = trainer.fit(resume=args.resume)
+    from ..view.live import live_view
+
+    with live_view(args, cfg) as on_step:  # None without --view
+        trainer = Trainer(cfg, args.out, quiet=args.quiet)
+        rec = trainer.fit(resume=args.resume, on_step=on_step)
     if not args.quiet:
         print(f"trained {rec.get('step', trainer.step)} steps: loss {rec.get('loss', float('nan')):.5f}, "
               f"{len(trainer.model)} Gaussians -> {args.out} (model.pt, ckpt.pt, log.jsonl, training.png)")
@@ -198,6 +201,9 @@ def build_parser():
     t.add_argument("--threads", type=int, help="CPU threads for torch (default: torch's choice, all cores)")
     t.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     t.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
+    from ..view.command import add_train_options
+
+    add_train_options(t)  # --view, --view-every, --view-host, --view-port
     t.set_defaults(func=_train)
     _record_given(t)
     e = sub.add_parser("eval", help="PSNR/SSIM on sharp novel and deblurred training views -> metrics.json")
@@ -228,6 +234,9 @@ def build_parser():
     from .export_dataset import add_parser as add_export_dataset  # issue 19: ev3dgs export-dataset
 
     add_export_dataset(sub)
+    from ..view.command import add_parser as add_view_parser
+
+    add_view_parser(sub)  # `ev3dgs view` (browser viewer, optional extra ev3dgs[view]; --png without it)
     return p
 
 

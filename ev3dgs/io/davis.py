@@ -231,6 +231,9 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
     if opts.poses:
         stats.latent_frames = len(views) * opts.subposes
         kept, poses, pose_t, K, res, stats.registered = estimate_view_poses(images, ev, views, K, opts)
+        # the views pose estimation dropped, for `ev3dgs view` (index among the usable frames, exposure, us)
+        unregistered = [{"frame": i, "exposure": [int(v.exposure_start), int(v.exposure_end)]}
+                        for i, v in enumerate(views) if i not in set(kept)]
         images = [images[i] for i in kept]
         exposure = exposure[kept]
         train_kw = dict(poses=poses, pose_t=pose_t)
@@ -258,6 +261,7 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
                 ("pycolmap estimate" if opts.poses else "nominal 70-degree guess (no calibration, no poses)"),
                 "input_distortion": dist_in.tolist(), "undistorted": bool(np.any(dist_in != 0)),
                 "frames_in_file": stats.frames_in_file, "registered_latent_frames": stats.registered,
+                **({"unregistered_views": unregistered} if opts.poses else {}),
                 "reader_warnings": stats.warnings},
     )
     schema.write(scene, out)

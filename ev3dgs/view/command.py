@@ -1,0 +1,95 @@
+"""`ev3dgs view PATH`: argument parsing and the command (registered by ev3dgs/cli/main.py)."""
+from __future__ import annotations
+
+import sys
+
+from ..errors import InputError
+
+DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8080
+
+
+def port_number(text: str) -> int:
+    import argparse
+
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0-65535, got {v}")
+    return v
+
+
+def add_parser(sub) -> None:
+    v = sub.add_parser("view", help="look at a scene file or a training run in the browser (viser), or as a PNG")
+    v.add_argument("path", help="scene file (.h5) or run folder written by `ev3dgs train`")
+    v.add_argument("--png", help="write the content as a static figure to this PNG (contact sheet of frames, "
+                                 "event images and a top view of the trajectories) instead of starting the "
+                                 "viewer (default: none, start the viewer)")
+    v.add_argument("--rows", type=int, default=4,
+                   help="training views (rows) in the --png contact sheet, spread over all views "
+                        "(default %(default)s)")
+    v.add_argument("--host", default=DEFAULT_HOST,
+                   help="address the viewer binds to; 0.0.0.0 makes it reachable from other machines "
+                        "(default %(default)s, this machine only)")
+    v.add_argument("--port", type=port_number, default=DEFAULT_PORT,
+                   help="TCP port of the viewer; when taken the next free one is used, 0 = any free port "
+                        "(default %(default)s)")
+    v.add_argument("--select", type=int, default=0,
+                   help="training view selected when the page opens (index, default %(default)s)")
+    v.set_defaults(func=run)
+
+
+def add_train_options(t) -> None:
+    """`ev3dgs train --view`: the options on the train parser."""
+    t.add_argument("--view", action="store_true",
+                   help="show the training in the browser viewer (viser, ev3dgs[view]), updated every "
+                        "--view-every steps (default: off)")
+    t.add_argument("--view-every", type=int, default=100,
+                   help="steps between viewer updates with --view (default %(default)s)")
+    t.add_argument("--view-host", default=DEFAULT_HOST,
+                   help="address the --view viewer binds to (default %(default)s, this machine only)")
+    t.add_argument("--view-port", type=port_number, default=DEFAULT_PORT,
+                   help="TCP port of the --view viewer, the next free one when taken (default %(default)s)")
+
+
+def run(args) -> int:
+    from . import data
+
+    if args.rows < 1:
+        raise InputError(f"--rows must be >= 1, got {args.rows}")
+    if args.png is None:
+        from .server import require_viser
+
+        require_viser()  # before reading anything: the one-line install hint comes first
+    else:
+        from ..outputs import check_output_file
+
+        check_output_file(args.png, 2 << 20, make_parents=True, option="--png")
+    content = data.load(args.path)
+    scene = content.scene if isinstance(content, data.RunContent) else content
+    if scene.n_views and not 0 <= args.select < scene.n_views:
+        raise InputError(f"--select {args.select}: the scene has views 0-{scene.n_views - 1}")
+    if args.png is not None:
+        from .figure import write_png
+
+        write_png(content, args.png, rows=args.rows)
+        print(f"-> {args.png}")
+        return 0
+    from .server import Viewer
+
+    viewer = Viewer(args.host, args.port, label=f"ev3dgs: {scene.scene.name or scene.path.name}")
+    try:
+        viewer.show_scene(scene, args.select)
+        if isinstance(content, data.RunContent):
+            viewer.show_splats(data.splat_arrays(content.model))
+            if content.refined_poses is not None:
+                viewer.show_refined(scene, content.refined_poses, content.refined_t)
+            viewer.set_status(f"run {content.path}: {len(content.model)} Gaussians from {content.source}")
+    except BaseException:
+        viewer.stop()
+        raise
+    viewer.announce()
+    viewer.wait()
+    print("viewer stopped", file=sys.stderr)
+    return 0

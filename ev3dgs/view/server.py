@@ -1,0 +1,274 @@
+"""The browser viewer: the content of data.py put into a viser server (optional extra ``ev3dgs[view]``).
+
+Scene tree: /world (axes and grid, their size printed in the panel), /train (frusta with thumbnails, exposure
+trajectories, start and end markers), /test, /points, /imu (gyro-integrated orientations), /refined (a run's
+refined trajectories), /splats (the Gaussians). The panel shows the selected view's blurry frame, its sharp
+frame and the events of its exposure up to a time chosen with a slider.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+
+from ..errors import Ev3dgsError
+from . import data
+
+TRAIN_COLOUR = (230, 120, 20)      # training frusta and trajectories
+SELECTED_COLOUR = (20, 160, 60)
+TEST_COLOUR = (80, 80, 200)
+REFINED_COLOUR = (200, 30, 160)
+START_COLOUR, END_COLOUR = (20, 160, 60), (200, 30, 30)
+THUMB_PX = 128
+
+
+def require_viser():
+    try:
+        import viser
+    except ImportError:
+        raise Ev3dgsError("`ev3dgs view` needs the optional package viser, which is not installed: "
+                          "pip install ev3dgs[view] (or use --png for a static figure)") from None
+    return viser
+
+
+def _thumb(img: np.ndarray) -> np.ndarray:
+    h, w = img.shape[:2]
+    step = max(1, int(np.ceil(max(h, w) / THUMB_PX)))
+    return np.ascontiguousarray(img[::step, ::step])
+
+
+def _nice_length(extent: float) -> float:
+    """A round length (1, 2 or 5 times a power of ten) near a quarter of the scene's size."""
+    target = max(extent / 4, 1e-6)
+    p = 10 ** np.floor(np.log10(target))
+    return float(min((m * p for m in (1, 2, 5, 10)), key=lambda v: abs(np.log(v / target))))
+
+
+def _segments(polyline: np.ndarray) -> np.ndarray:
+    return np.stack([polyline[:-1], polyline[1:]], axis=1)
+
+
+def display_url(host: str, port: int) -> str:
+    return f"http://{'127.0.0.1' if host in ('0.0.0.0', '::', '') else host}:{port}"
+
+
+class Viewer:
+    """A viser server showing one scene (and optionally a model); GUI callbacks run in viser's threads."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, label: str = "ev3dgs"):
+        viser = require_viser()
+        self.host, self.requested_port = host, port
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: we print one URL line
+                self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+        except OSError as e:
+            raise Ev3dgsError(f"cannot start the viewer on {host}:{port} ({e.strerror or e})") from None
+        self.port = int(self.server.get_port())
+        self.url = display_url(host, self.port)
+        self._lock = threading.RLock()
+        self._splats = None
+        self._content: data.SceneContent | None = None
+        self._reader: data.EventReader | None = None
+        self.status = self.server.gui.add_markdown("", order=0)
+
+    # ------------------------------------------------------------------ the scene
+    def show_scene(self, c: data.SceneContent, select: int = 0) -> None:
+        s, g = self.server.scene, self.server.gui
+        self._content = c
+        ext = c.extent
+        W, H = c.size
+        K = c.scene.camera.K
+        rots = None if c.train_poses is None else c.train_poses[:, :, :3, :3]
+        if rots is not None:
+            s.set_up_direction(data.world_up(rots))
+        unit = _nice_length(ext)
+        s.add_frame("/world", axes_length=unit, axes_radius=unit * 0.01)
+        up = data.world_up(rots) if rots is not None else np.array([0.0, 0.0, 1.0])
+        from ..geometry import matrix_to_quat
+
+        basis = data.top_view_basis(rots) if rots is not None else np.eye(3)[:2]
+        s.add_grid("/world/grid", width=unit * 10, height=unit * 10, cell_size=unit, section_size=unit * 5,
+                   wxyz=matrix_to_quat(np.stack([basis[0], basis[1], up], axis=1)))
+        size = 0.03 * ext
+        self._frusta = []
+        self._initial_camera(c, up)
+        if c.train_poses is not None:
+            mids = c.mid_poses()
+            lines = c.polylines()
+            for i in range(c.n_views):
+                f = data.frustum(mids[i], K, W, H)
+                h = s.add_camera_frustum(f"/train/view_{i}", f.fov_y, f.aspect, scale=size, color=TRAIN_COLOUR,
+                                         thickness=size * 0.04, image=_thumb(c.frame(i)), format="jpeg",
+                                         wxyz=f.wxyz, position=f.position)
+                h.on_click(lambda _e, i=i: self._select(i))
+                self._frusta.append(h)
+            segs = np.concatenate([_segments(p) for p in lines]) if lines.shape[1] > 1 else None
+            if segs is not None:
+                s.add_line_segments("/train/trajectories", segs, TRAIN_COLOUR, thickness=size * 0.05)
+            s.add_point_cloud("/train/starts", lines[:, 0], START_COLOUR, point_size=size * 0.08,
+                              point_shape="circle")
+            s.add_point_cloud("/train/ends", lines[:, -1], END_COLOUR, point_size=size * 0.08,
+                              point_shape="diamond")
+        if c.test_poses is not None:
+            for j, pose in enumerate(c.test_poses):
+                f = data.frustum(pose, K, W, H)
+                s.add_camera_frustum(f"/test/view_{j}", f.fov_y, f.aspect, scale=size, color=TEST_COLOUR,
+                                     thickness=size * 0.04, wxyz=f.wxyz, position=f.position)
+        pts = c.scene.points
+        if pts is not None and len(pts.xyz):
+            s.add_point_cloud("/points", np.asarray(pts.xyz, np.float32), np.asarray(pts.rgb, np.uint8),
+                              point_size=size * 0.05)
+        if c.imu is not None:
+            mid = c.imu.rotations.shape[1] // 2
+            good = np.isfinite(c.imu.rotations[:, mid]).all(axis=(1, 2))
+            if good.any():
+                wxyz = np.stack([matrix_to_quat(r) for r in c.imu.rotations[good, mid]])
+                s.add_batched_axes("/imu", wxyz, c.mid_poses()[good, :3, 3], axes_length=size * 0.8,
+                                   axes_radius=size * 0.03)
+        self._info(c, unit)
+        self._panel(c, select)
+
+    def _initial_camera(self, c: data.SceneContent, up: np.ndarray) -> None:
+        """Open the page looking at the scene from above and outside the cameras."""
+        if c.train_poses is None:
+            return
+        centres = c.mid_poses()[:, :3, 3]
+        sc = c.scene
+        if sc.bounds is not None:
+            target = np.asarray(sc.bounds, np.float64).mean(axis=0)
+        elif sc.points is not None and len(sc.points.xyz):
+            target = np.median(np.asarray(sc.points.xyz, np.float64), axis=0)
+        else:
+            target = centres.mean(axis=0)
+        radius = max(float(np.linalg.norm(centres - target, axis=1).max()), 0.5 * c.extent, 1e-3)
+        side = centres[0] - target
+        side -= up * (side @ up)
+        n = np.linalg.norm(side)
+        side = side / n if n > 1e-9 else data.top_view_basis(c.train_poses[:, :, :3, :3])[0]
+        cam = self.server.initial_camera
+        cam.look_at = target
+        cam.up = up
+        cam.position = target + radius * (1.3 * side + 1.0 * up)
+
+    def _info(self, c: data.SceneContent, unit: float) -> None:
+        sc = c.scene
+        lines = [f"**{sc.name or c.path.name}** ({sc.source}): {c.n_views} training views, "
+                 f"{0 if sc.test is None else len(sc.test.images)} test views, {len(sc.events)} events, "
+                 f"{c.size[0]}x{c.size[1]} px",
+                 f"World axes: {unit:g} units long; grid cells {unit:g}. Training cameras orange (trajectory: "
+                 "green start, red end), test cameras blue."]
+        if c.train_poses is None:
+            lines.append("No poses in this file (ingested without pose estimation).")
+        if c.imu is not None and np.isfinite(c.imu.angle_deg).any():
+            a = c.imu.angle_deg[np.isfinite(c.imu.angle_deg)]
+            lines.append(f"IMU axes at the cameras: gyro integrated from the first pose; it differs from the "
+                         f"estimated rotation by median {np.median(a):.2f} deg, max {a.max():.2f} deg.")
+        if c.failed:
+            lines.append(f"Failed to register ({len(c.failed)}): " + "; ".join(c.failed))
+        self.server.gui.add_markdown("\n\n".join(lines), order=1)
+
+    def _panel(self, c: data.SceneContent, select: int) -> None:
+        g = self.server.gui
+        n = c.n_views
+        if n == 0:
+            return
+        self._reader = data.EventReader(c.path)
+        select = int(min(max(select, 0), n - 1))
+        self.view_slider = g.add_slider("view", 0, max(n - 1, 1), 1, select, disabled=n < 2, order=2)
+        self.time_slider = g.add_slider("events up to (% of exposure)", 0, 100, 1, 100, order=3)
+        self.caption = g.add_markdown("", order=4)
+        self.frame_image = g.add_image(np.asarray(c.frame(select)), label="blurry frame", format="png", order=5)
+        sharp = c.sharp(select)
+        self.sharp_image = None if sharp is None else g.add_image(np.asarray(sharp), label="sharp frame",
+                                                                  format="png", order=6)
+        self.event_image = g.add_image(np.full((c.size[1], c.size[0], 3), 255, np.uint8), format="png",
+                                       label="events (ON blue, OFF red)", order=7)
+        self.view_slider.on_update(lambda _e: self._select(int(self.view_slider.value)))
+        self.time_slider.on_update(lambda _e: self._update_events())
+        self._select(select)
+
+    def _select(self, i: int) -> None:
+        c = self._content
+        with self._lock:
+            if int(self.view_slider.value) != i:
+                self.view_slider.value = i  # fires _select again from viser's side; harmless
+            self.selected = i
+            for j, h in enumerate(self._frusta):
+                h.color = SELECTED_COLOUR if j == i else TRAIN_COLOUR
+            self.frame_image.image = np.asarray(c.frame(i))
+            if self.sharp_image is not None:
+                self.sharp_image.image = np.asarray(c.sharp(i))
+        self._update_events()
+
+    def _update_events(self) -> None:
+        c, i = self._content, self.selected
+        frac = float(self.time_slider.value) / 100
+        with self._lock:
+            on, off = c.event_counts(self._reader, i, frac)
+            self.event_image.image = data.event_image(on, off)
+            t = data.accumulation_time(c.exposure[i], frac)
+            start, end = (int(v) for v in c.exposure[i])
+            self.caption.content = (f"**view {i}** of {c.n_views}: exposure {start}-{end} us; events up to "
+                                    f"{t} us: {int(on.sum())} ON, {int(off.sum())} OFF")
+
+    # ------------------------------------------------------------------ a model
+    def show_splats(self, arrays: dict) -> None:
+        with self._lock:
+            self._splats = self.server.scene.add_gaussian_splats("/splats", **arrays)
+
+    def show_refined(self, c: data.SceneContent, poses: np.ndarray, pose_t: np.ndarray) -> None:
+        lines = data.trajectory_polylines(poses, pose_t)
+        size = 0.03 * c.extent
+        if lines.shape[1] > 1:
+            self.server.scene.add_line_segments("/refined/trajectories",
+                                                np.concatenate([_segments(p) for p in lines]),
+                                                REFINED_COLOUR, thickness=size * 0.05)
+        W, H = c.size
+        for i, pose in enumerate(poses[:, poses.shape[1] // 2]):
+            f = data.frustum(pose, c.scene.camera.K, W, H)
+            self.server.scene.add_camera_frustum(f"/refined/view_{i}", f.fov_y, f.aspect, scale=size,
+                                                 color=REFINED_COLOUR, thickness=size * 0.04, wxyz=f.wxyz,
+                                                 position=f.position)
+        self.server.gui.add_markdown("Refined trajectories (RUN/trajectory.npz) in magenta beside the initial "
+                                     "ones (orange).", order=1.5)
+
+    def set_status(self, text: str) -> None:
+        self.status.content = text
+
+    # ------------------------------------------------------------------ life cycle
+    def announce(self) -> None:
+        if self.port != self.requested_port and self.requested_port != 0:
+            print(f"port {self.requested_port} is in use: using {self.port}", file=sys.stderr)
+        if self.host in ("0.0.0.0", "::", ""):
+            print(f"warning: --host {self.host} makes the viewer reachable from other machines on the network, "
+                  "with no password; use it only on a network you trust", file=sys.stderr)
+        print(f"ev3dgs view: {self.url}  (Ctrl-C to stop)", flush=True)
+
+    def wait(self) -> None:
+        """Serve until Ctrl-C (SIGINT) or SIGTERM, then stop cleanly. The handlers are set here, not
+        inherited: a shell starts background jobs with SIGINT ignored, and a viewer must still stop on it."""
+        def interrupt(signum, frame):
+            raise KeyboardInterrupt
+
+        old = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            while True:
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
+            self.stop()
+
+    def stop(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+        with contextlib.redirect_stdout(io.StringIO()):  # "(viser) Server stopped"
+            self.server.stop()
