@@ -88,7 +88,9 @@ def _eval(args) -> int:
     from ..train.evaluate import evaluate
 
     m = evaluate(args.run, lpips_weights=args.lpips_weights, device=args.device)
-    for key, label in (("test", "novel views"), ("train_sharp", "deblurred training views"),
+    for key, label in (("test", "novel views"), ("novel_view_unaligned", "novel views, unaligned"),
+                       ("train_sharp", "deblurred training views"),
+                       ("blur_view_given_poses", "deblurred, at given poses"),
                        ("blurry_input", "blurry input (baseline)")):
         if key in m:
             print(f"{label:26s} PSNR {m[key]['psnr']:6.2f} dB  SSIM {m[key]['ssim']:.4f}  ({m[key]['n']} views)")
