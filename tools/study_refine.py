@@ -24,6 +24,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -73,25 +74,49 @@ def perturb_scene(src: str, dst: Path, rot_deg: float, trans_frac: float, seed: 
     return {"true_mid": true_mid, "perturbed_mid": pert_mid}
 
 
-def train_and_eval(cfg: TrainConfig, run: Path) -> dict:
-    from ev3dgs.train.evaluate import evaluate
+def train_and_eval(cfg: TrainConfig, run: Path, reuse: bool = False) -> dict:
+    """Train (or, with ``reuse``, take the finished run already in ``run`` made with the same settings) and
+    evaluate. Training time: the log's last "seconds" (the trainer's own clock)."""
+    from ev3dgs.train.evaluate import evaluate, load_run
     from ev3dgs.train.trainer import Trainer
 
-    torch.manual_seed(cfg.seed)
-    tr = Trainer(cfg, run, quiet=True)
-    t0 = time.perf_counter()
-    tr.fit()
-    seconds = time.perf_counter() - t0
+    done = reuse and (run / "model.pt").is_file() and (run / "config.json").is_file() and \
+        not TrainConfig.load(run / "config.json").differences(cfg, ignore=("threads",))
+    if not done:
+        torch.manual_seed(cfg.seed)
+        Trainer(cfg, run, quiet=True).fit()
+    last = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
     m = evaluate(run, device="cpu", write_images=False)
-    out = {"train_seconds": seconds, "seconds_per_step": seconds / cfg.iterations, "metrics": m, "trainer": tr}
-    return out
+    return {"train_seconds": last["seconds"], "seconds_per_step": last["seconds"] / cfg.iterations,
+            "metrics": m, "model": load_run(run)[1], "pose_skipped": last.get("pose_skipped"),
+            "reused": bool(done)}
 
 
-def errors(est_mid, true_mid) -> dict:
+def reprojection_px(est_mid, true_mid, K, bounds, n=2000, seed=0) -> np.ndarray:
+    """Per view, the median image displacement (pixels) of points spread uniformly in the scene bounds between
+    the true camera and the estimated one mapped into the true frame (``align_similarity``): the pose error
+    as the images see it, blind to the rotation/translation trade-off a narrow field of view allows."""
+    from ev3dgs.geometry import project
+    from ev3dgs.train.pose_refine import align_similarity, apply_similarity
+
+    pts = np.random.default_rng(seed).uniform(bounds[0], bounds[1], (n, 3))
+    est = apply_similarity(est_mid, *align_similarity(est_mid, true_mid))
+    out = []
+    for e, t in zip(est, true_mid):
+        (a, za), (b, zb) = project(K, e, pts), project(K, t, pts)
+        ok = (za > 0) & (zb > 0)
+        out.append(float(np.median(np.linalg.norm(a[ok] - b[ok], axis=1))))
+    return np.array(out)
+
+
+def errors(est_mid, true_mid, K, bounds) -> dict:
     e = pose_errors(est_mid, true_mid)
     raw = np.degrees(relative_rotation_angle(est_mid[:, :3, :3], true_mid[:, :3, :3]))
     e["rotation_deg_per_view"] = [float(x) for x in raw]  # unaligned: as the trainer saw them
     e["rotation_deg_mean_unaligned"] = float(raw.mean())
+    px = reprojection_px(est_mid, true_mid, K, bounds)
+    e["reprojection_px_per_view"] = [float(x) for x in px]
+    e["reprojection_px_median"] = float(np.median(px))
     return e
 
 
@@ -101,6 +126,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", help="scene .h5 with /train/sharp (default: simulate the quick lego at --size)")
     ap.add_argument("--size", default="64x48", help="image size of the simulated scene (default %(default)s)")
     ap.add_argument("--views", type=int, default=8, help="training views of the simulated scene (default 8)")
+    ap.add_argument("--fov", type=float, help="horizontal field of view of the simulated scene, degrees "
+                                              "(default: the scene's, 40)")
+    ap.add_argument("--radius", type=float, help="camera distance from the origin in the simulated scene "
+                                                 "(default: the scene's, 4)")
     ap.add_argument("--iterations", type=int, help="training steps (default 1500, --quick 500)")
     ap.add_argument("--rot-deg", type=float, default=1.0, help="rotation error per view, degrees (default 1)")
     ap.add_argument("--trans-frac", type=float, default=0.02,
@@ -111,6 +140,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default="tools/results/study_refine.json", help="results (default %(default)s)")
     ap.add_argument("--plot", default="tools/results/study_refine.png", help="figure (default %(default)s)")
     ap.add_argument("--keep", help="folder to keep the scenes and runs in (default: a temporary one)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --keep: evaluate finished runs found there (same settings) instead of training "
+                         "them again (default: off)")
     args = ap.parse_args(argv)
     iterations = args.iterations or (500 if args.quick else 1500)
     lrs = args.pose_lr or ([3e-3] if args.quick else [1e-3, 3e-3])
@@ -124,47 +156,55 @@ def main(argv=None) -> int:
     if scene is None:
         from ev3dgs.demo import make_scene
 
-        scene = str(make_scene(d / "scene", quiet=True, width=W, height=H, views=args.views, test_views=3))
+        scene = str(make_scene(d / "scene", quiet=True, width=W, height=H, views=args.views, test_views=3,
+                               fov_deg=args.fov, radius=args.radius))
     pert = d / "perturbed.h5"
     truth = perturb_scene(scene, pert, args.rot_deg, args.trans_frac, args.seed)
     base = TrainConfig(scene=scene, iterations=iterations, init_points=5000, seed=args.seed, device="cpu",
                        backend="cpu", checkpoint_every=10 ** 6)
-    before = errors(truth["perturbed_mid"], truth["true_mid"])
+    sc0 = schema.read(scene)
+    K0 = np.asarray(sc0.camera.K)
+    bounds = np.asarray(sc0.bounds) if sc0.bounds is not None else np.array([[-1.0] * 3, [1.0] * 3])
+    before = errors(truth["perturbed_mid"], truth["true_mid"], K0, bounds)
     runs = {"true poses": base, "perturbed": replace(base, scene=str(pert))}
     for lr in lrs:
         runs[f"perturbed + refine (lr {lr:g})"] = replace(base, scene=str(pert), refine_poses=True, pose_lr=lr)
     results = {}
     for name, cfg in runs.items():
-        r = train_and_eval(cfg, d / "runs" / name.replace(" ", "_").replace("(", "").replace(")", ""))
-        m, tr = r.pop("metrics"), r.pop("trainer")
+        r = train_and_eval(cfg, d / "runs" / name.replace(" ", "_").replace("(", "").replace(")", ""),
+                           reuse=args.reuse)
+        m, model = r.pop("metrics"), r.pop("model")
         row = {**r, "blur_view_psnr": m["blur_view"]["psnr"], "blur_view_ssim": m["blur_view"]["ssim"],
                "novel_view_psnr": m["novel_view"]["psnr"], "blurry_input_psnr": m["blurry_input"]["psnr"]}
         if cfg.refine_poses:
             from ev3dgs.train.pose_refine import load_trajectory
 
-            tj = load_trajectory(Path(tr.run_dir) / "trajectory.npz", len(truth["true_mid"]))
+            run_dir = d / "runs" / name.replace(" ", "_").replace("(", "").replace(")", "")
+            tj = load_trajectory(run_dir / "trajectory.npz", len(truth["true_mid"]))
             ex = schema.read(cfg.scene).train.exposure
             refined_mid = mid_poses(tj["poses"], tj["pose_t"], ex)
-            row["pose_errors_after"] = errors(refined_mid, truth["true_mid"])
+            row["pose_errors_after"] = errors(refined_mid, truth["true_mid"], K0, bounds)
             row["blur_view_psnr_given_poses"] = m["blur_view_given_poses"]["psnr"]
             row["novel_view_psnr_unaligned"] = m["novel_view_unaligned"]["psnr"]
             row["test_alignment"] = {k: m["test_alignment"][k] for k in ("scale", "rotation_deg", "translation")}
-            row["pose_steps_skipped"] = tr.pose_refiner.skipped
+            row["pose_steps_skipped"] = r.pop("pose_skipped")
         if name == "perturbed":  # also at the poses it was trained with (what a user without ground truth has)
             from ev3dgs.train.evaluate import _scores, render_views
 
             sc = schema.read(cfg.scene)
             K = torch.as_tensor(sc.camera.K, dtype=torch.float32)
             bg = torch.as_tensor(sc.camera.background or (0, 0, 0), dtype=torch.float32)
-            pred = render_views(tr.model, truth["perturbed_mid"], K, sc.camera.width, sc.camera.height, bg, "cpu")
+            pred = render_views(model, truth["perturbed_mid"], K, sc.camera.width, sc.camera.height, bg, "cpu")
             row["blur_view_psnr_training_poses"] = _scores(pred, np.asarray(sc.train.sharp))["psnr"]
         results[name] = row
-        extra = (f", rotation error {before['rotation_deg_median']:.3f} -> "
-                 f"{row['pose_errors_after']['rotation_deg_median']:.3f} deg (median, aligned)"
-                 if "pose_errors_after" in row else "")
+        after = row.get("pose_errors_after")
+        extra = (f", rotation error {before['rotation_deg_median']:.3f} -> {after['rotation_deg_median']:.3f} deg "
+                 f"(median, aligned), reprojection {before['reprojection_px_median']:.2f} -> "
+                 f"{after['reprojection_px_median']:.2f} px" if after else "")
         print(f"{name:30s} blur-view {row['blur_view_psnr']:.2f} dB, novel {row['novel_view_psnr']:.2f} dB, "
               f"{r['seconds_per_step'] * 1e3:.0f} ms/step{extra}", flush=True)
-    out = {"scene": Path(scene).name, "size": f"{W}x{H}", "views": len(truth["true_mid"]),
+    fov = float(np.degrees(2 * np.arctan(0.5 * sc0.camera.width / K0[0, 0])))
+    out = {"scene": Path(scene).name, "size": f"{W}x{H}", "fov_deg": fov, "views": len(truth["true_mid"]),
            "iterations": iterations, "seed": args.seed, "rot_deg": args.rot_deg, "trans_frac": args.trans_frac,
            "pose_errors_before": before, "runs": results, "seconds_total": time.perf_counter() - t_all,
            "command": "python tools/study_refine.py " + " ".join(argv if argv is not None else sys.argv[1:])}
@@ -182,7 +222,7 @@ def plot(out: dict, png: str) -> None:
     import matplotlib.pyplot as plt
 
     names = list(out["runs"])
-    fig, ax = plt.subplots(1, 2, figsize=(11, 3.8))
+    fig, ax = plt.subplots(1, 3, figsize=(15, 3.8))
     x = np.arange(len(names))
     ax[0].bar(x - 0.2, [out["runs"][n]["blur_view_psnr"] for n in names], 0.4, label="blur views")
     ax[0].bar(x + 0.2, [out["runs"][n]["novel_view_psnr"] for n in names], 0.4, label="novel views (aligned)")
@@ -198,8 +238,17 @@ def plot(out: dict, png: str) -> None:
     ax[1].set_xlabel("training view")
     ax[1].set_ylabel("mid-exposure rotation error (deg, unaligned)")
     ax[1].legend(fontsize=7)
-    fig.suptitle(f"--refine-poses on {out['scene']} {out['size']}, {out['views']} views, {out['iterations']} "
-                 f"steps, {out['rot_deg']} deg / {out['trans_frac']:.0%} pose errors", fontsize=9)
+    ax[2].plot(out["pose_errors_before"]["reprojection_px_per_view"], "ko-", label="perturbed (before)")
+    for n in names:
+        if "pose_errors_after" in out["runs"][n]:
+            ax[2].plot(out["runs"][n]["pose_errors_after"]["reprojection_px_per_view"], "o-", label=n)
+    ax[2].set_xlabel("training view")
+    ax[2].set_ylabel("median reprojection error of scene points (px)")
+    ax[2].set_ylim(0, None)
+    ax[2].legend(fontsize=7)
+    fig.suptitle(f"--refine-poses on {out['scene']} {out['size']} (FOV {out['fov_deg']:.0f} deg), {out['views']} "
+                 f"views, {out['iterations']} steps, {out['rot_deg']} deg / {out['trans_frac']:.0%} pose errors",
+                 fontsize=9)
     fig.tight_layout()
     Path(png).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=100)

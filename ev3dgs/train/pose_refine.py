@@ -26,7 +26,7 @@ drift along that null space (the Gaussians follow slowly), the refined frame wan
 test cameras are given in, and the pose error is ill-defined. After every update the corrections' component
 in that subspace is removed: to first order a similarity (w, tau, s) about the mean camera centre o changes
 (omega, rho) of every endpoint by (w, (w x (c - o) + tau + s (c - o)) / scene_scale); its least-squares
-fit to all corrections (np.linalg.lstsq: rank-deficient sets, e.g. one view, still get a minimiser) is
+fit to all corrections (the pseudo-inverse: rank-deficient sets, e.g. one view, still get a minimiser) is
 subtracted. ``gauge="none"`` keeps the corrections as they are (for a fixed, known scene).
 
 Guard
@@ -121,7 +121,11 @@ class PoseRefiner:
         self.opt = torch.optim.Adam(self.params, lr=self.lr)
         self.skipped = 0
         ends = np.concatenate([c2w[:, 0, :3, 3], c2w[:, -1, :3, 3]])  # (2N, 3): starts, then ends
-        self._gauge_A = gauge_basis(ends, self.scene_scale).reshape(2 * self.N * 6, 7)
+        A = gauge_basis(ends, self.scene_scale).reshape(2 * self.N * 6, 7)
+        # least-squares fit of the 7 generators: coef = pinv(A) x (rank-deficient A, e.g. one view: minimum
+        # norm); applied with torch in the trainer's pinned-thread context (bitwise reproducible)
+        self._gauge_A = A
+        self._gauge = (t(A), t(np.linalg.pinv(A, rcond=1e-10)))
 
     @classmethod
     def for_training(cls, data, cfg, device) -> "PoseRefiner":
@@ -140,24 +144,24 @@ class PoseRefiner:
         p = self.params[v]
         return (1 - self.frac[v]) * p[0] + self.frac[v] * p[1]
 
+    def _rotation_centre(self, v: int) -> tuple[torch.Tensor, torch.Tensor]:
+        xi = self.corrections(v)
+        return so3_exp(xi[:, 3:]) @ self.R0[v], self.c0[v] + self.scene_scale * xi[:, :3]
+
+    @staticmethod
+    def _homogeneous(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(len(R), 1, 4)
+        return torch.cat([torch.cat([R, t[:, :, None]], -1), bottom], -2)
+
     def c2w(self, v: int) -> torch.Tensor:
         """(B, 4, 4) corrected camera-to-world sub-poses of view v (float64, differentiable)."""
-        xi = self.corrections(v)
-        R = so3_exp(xi[:, 3:]) @ self.R0[v]
-        c = self.c0[v] + self.scene_scale * xi[:, :3]
-        top = torch.cat([R, c[:, :, None]], -1)
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64, device=self.device).expand(len(R), 1, 4)
-        return torch.cat([top, bottom], -2)
+        return self._homogeneous(*self._rotation_centre(v))
 
     def viewmats(self, v: int, dtype=torch.float32) -> torch.Tensor:
         """(B, 4, 4) world->camera of view v's corrected sub-poses: [R^T, -R^T c] (a rigid inverse)."""
-        xi = self.corrections(v)
-        R = so3_exp(xi[:, 3:]) @ self.R0[v]
-        c = self.c0[v] + self.scene_scale * xi[:, :3]
+        R, c = self._rotation_centre(v)
         Rt = R.transpose(-1, -2)
-        top = torch.cat([Rt, -(Rt @ c[:, :, None])], -1)
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64, device=self.device).expand(len(R), 1, 4)
-        return torch.cat([top, bottom], -2).to(dtype)
+        return self._homogeneous(Rt, -(Rt @ c[:, :, None])[..., 0]).to(dtype)
 
     @torch.no_grad()
     def all_c2w(self) -> np.ndarray:
@@ -201,10 +205,10 @@ class PoseRefiner:
     def _project(self) -> None:
         P = torch.stack(self.params)  # (N, 2, 6)
         if self.gauge == "similarity":
-            flat = P.transpose(0, 1).reshape(-1).cpu().numpy()  # starts then ends, like _gauge_A
-            coef = np.linalg.lstsq(self._gauge_A, flat, rcond=1e-10)[0]
-            flat = flat - self._gauge_A @ coef
-            P = torch.as_tensor(flat, device=self.device).reshape(2, self.N, 6).transpose(0, 1)
+            A, pinv = self._gauge
+            flat = P.transpose(0, 1).reshape(-1)  # starts then ends, like the rows of A
+            flat = flat - A @ (pinv @ flat)
+            P = flat.reshape(2, self.N, 6).transpose(0, 1)
         rot = P[..., 3:].norm(dim=-1, keepdim=True)
         trn = P[..., :3].norm(dim=-1, keepdim=True)
         P[..., 3:] *= torch.where(rot > self.max_rot, self.max_rot / rot.clamp_min(1e-300), torch.ones_like(rot))
