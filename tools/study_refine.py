@@ -109,6 +109,31 @@ def reprojection_px(est_mid, true_mid, K, bounds, n=2000, seed=0) -> np.ndarray:
     return np.array(out)
 
 
+def step_cost(scene: str, steps: int = 40, block: int = 5) -> dict:
+    """Seconds per training step with and without --refine-poses, measured in one process with blocks of
+    ``block`` steps alternating between two trainers (poses moving from step 0), so machine load hits both
+    alike; torch pinned to 1 thread by the trainer's step. Returns the medians and their ratio."""
+    from ev3dgs.train.trainer import Trainer
+
+    with tempfile.TemporaryDirectory() as d:
+        base = TrainConfig(scene=scene, iterations=10 * steps, init_points=5000, device="cpu", backend="cpu",
+                           pose_start=0, pose_warmup=0)
+        tr = {k: Trainer(replace(base, refine_poses=k), Path(d) / str(k), quiet=True) for k in (False, True)}
+        for t in tr.values():  # compile and warm up
+            for _ in range(3):
+                t.train_step()
+        times = {False: [], True: []}
+        for _ in range(steps // block):
+            for k, t in tr.items():
+                t0 = time.perf_counter()
+                for _ in range(block):
+                    t.train_step()
+                times[k].append((time.perf_counter() - t0) / block)
+    off, on = float(np.median(times[False])), float(np.median(times[True]))
+    return {"seconds_per_step_off": off, "seconds_per_step_on": on, "ratio": on / off, "blocks": steps // block,
+            "block": block, "ratio_per_block": [b / a for a, b in zip(times[False], times[True])]}
+
+
 def errors(est_mid, true_mid, K, bounds) -> dict:
     e = pose_errors(est_mid, true_mid)
     raw = np.degrees(relative_rotation_angle(est_mid[:, :3, :3], true_mid[:, :3, :3]))
@@ -140,6 +165,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default="tools/results/study_refine.json", help="results (default %(default)s)")
     ap.add_argument("--plot", default="tools/results/study_refine.png", help="figure (default %(default)s)")
     ap.add_argument("--keep", help="folder to keep the scenes and runs in (default: a temporary one)")
+    ap.add_argument("--step-cost", action="store_true",
+                    help="also time training steps with and without refinement, interleaved in one process "
+                         "(default: off)")
     ap.add_argument("--reuse", action="store_true",
                     help="with --keep: evaluate finished runs found there (same settings) instead of training "
                          "them again (default: off)")
@@ -204,7 +232,12 @@ def main(argv=None) -> int:
         print(f"{name:30s} blur-view {row['blur_view_psnr']:.2f} dB, novel {row['novel_view_psnr']:.2f} dB, "
               f"{r['seconds_per_step'] * 1e3:.0f} ms/step{extra}", flush=True)
     fov = float(np.degrees(2 * np.arctan(0.5 * sc0.camera.width / K0[0, 0])))
-    out = {"scene": Path(scene).name, "size": f"{W}x{H}", "fov_deg": fov, "views": len(truth["true_mid"]),
+    cost = step_cost(str(pert)) if args.step_cost else None
+    if cost:
+        print(f"step cost: {cost['seconds_per_step_on'] * 1e3:.0f} ms with refinement vs "
+              f"{cost['seconds_per_step_off'] * 1e3:.0f} ms without (x{cost['ratio']:.2f})", flush=True)
+    out = {"scene": Path(scene).name, "step_cost": cost, "size": f"{sc0.camera.width}x{sc0.camera.height}",
+           "fov_deg": fov, "views": len(truth["true_mid"]),
            "iterations": iterations, "seed": args.seed, "rot_deg": args.rot_deg, "trans_frac": args.trans_frac,
            "pose_errors_before": before, "runs": results, "seconds_total": time.perf_counter() - t_all,
            "command": "python tools/study_refine.py " + " ".join(argv if argv is not None else sys.argv[1:])}
