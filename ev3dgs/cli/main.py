@@ -67,7 +67,10 @@ def _train(args) -> int:
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
         learn_thresholds=args.learn_thresholds, sh_degree=args.sh_degree,
         init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
-        device=args.device, threads=args.threads, backend=args.backend)
+        device=args.device, threads=args.threads, backend=args.backend,
+        refine_poses=args.refine_poses, pose_lr=args.pose_lr, pose_lr_final=args.pose_lr_final,
+        pose_start=args.pose_start, pose_warmup=args.pose_warmup, pose_max_rotation=args.pose_max_rotation,
+        pose_max_translation=args.pose_max_translation, pose_gauge=args.pose_gauge)
     if args.resume:  # the run's saved settings, with only what the command line gave on top (checked there)
         given = {"scene"} | {{"no_event_loss": "event_loss"}.get(d, d) for d in getattr(args, "given_options", opts)}
         cfg = resume_config(args.out, opts, given)
@@ -88,7 +91,9 @@ def _eval(args) -> int:
     from ..train.evaluate import evaluate
 
     m = evaluate(args.run, lpips_weights=args.lpips_weights, device=args.device)
-    for key, label in (("test", "novel views"), ("train_sharp", "deblurred training views"),
+    for key, label in (("test", "novel views"), ("novel_view_unaligned", "novel views, unaligned"),
+                       ("train_sharp", "deblurred training views"),
+                       ("blur_view_given_poses", "deblurred, at given poses"),
                        ("blurry_input", "blurry input (baseline)")):
         if key in m:
             print(f"{label:26s} PSNR {m[key]['psnr']:6.2f} dB  SSIM {m[key]['ssim']:.4f}  ({m[key]['n']} views)")
@@ -185,6 +190,31 @@ def build_parser():
     t.add_argument("--learn-thresholds", action="store_true",
                    help="optimise the ON/OFF contrast thresholds (log intensity) with the model "
                         "(default: off, the scene file's thresholds are kept fixed)")
+    t.add_argument("--refine-poses", action="store_true",
+                   help="learn per-view SE(3) corrections of each exposure's trajectory (start and end, "
+                        "interpolated over the sub-poses) with the model; saves RUN/trajectory.npz, which eval "
+                        "uses (default: off, the scene's poses are kept)")
+    t.add_argument("--pose-lr", type=finite_float, default=1e-3,
+                   help="Adam learning rate of the pose corrections, in radians and scene-scale units per "
+                        "step (default %(default)s)")
+    t.add_argument("--pose-lr-final", type=finite_float, default=0.01,
+                   help="the pose learning rate decays exponentially to --pose-lr times this at the last step "
+                        "(default %(default)s)")
+    t.add_argument("--pose-start", type=int, default=100,
+                   help="steps before the poses start moving (default %(default)s)")
+    t.add_argument("--pose-warmup", type=int, default=100,
+                   help="steps of linear warm-up of the pose learning rate after --pose-start "
+                        "(default %(default)s)")
+    t.add_argument("--pose-max-rotation", type=finite_float, default=5.0,
+                   help="divergence guard: each correction's rotation is clamped to this, in degrees "
+                        "(default %(default)s)")
+    t.add_argument("--pose-max-translation", type=finite_float, default=0.1,
+                   help="divergence guard: each correction's translation is clamped to this fraction of the "
+                        "scene scale (1.1 x the largest camera distance from the cameras' centre; default "
+                        "%(default)s)")
+    t.add_argument("--pose-gauge", choices=("similarity", "none"), default="similarity",
+                   help="similarity: remove the corrections' common rotation, translation and scale after every "
+                        "update (the losses cannot see them); none: keep them (default %(default)s)")
     t.add_argument("--sh-degree", type=int, default=3, help="spherical-harmonics degree of the colours, 0-3 "
                                                            "(default %(default)s)")
     t.add_argument("--init-points", type=int, default=20000,

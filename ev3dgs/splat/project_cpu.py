@@ -12,8 +12,14 @@ culled with zero gradient, depth cull before any division, FOV clamp inside the 
   rounding (tests/test_splat_backends.py, 1e-10);
 * the backward recomputes the forward's intermediates per (Gaussian, camera) instead of storing them.
 
-Gradients go to means, quats, scales and the SH coefficients (or plain colours). viewmats and K get none:
-callers that need pose gradients use the torch path (``rasterization`` falls back to it by itself).
+Gradients go to means, quats, scales, the SH coefficients (or plain colours) and, when they require it, the
+view matrices (C, 4, 4): through the camera point t = W p + tw, the EWA Jacobian T = J W (cov = T Sigma T^T)
+and the SH view directions p - campos with campos = inv(viewmat)[:3, 3], differentiated as the torch path
+differentiates ``torch.linalg.inv`` (see ``viewmat_grad``; all 16 entries, the bottom row included). Rows
+culled as non-finite contribute nothing to the camera gradient (the rasterizer gives them none anyway: their
+radius is 0). The per-camera sums over Gaussians are taken in fixed blocks (VM_BLOCK) in index order, so
+they do not depend on the thread count either. K gets no gradient: a K that requires one makes
+``rasterization`` use the torch path.
 """
 from __future__ import annotations
 
@@ -248,141 +254,171 @@ def _project_forward(means, quats, scales, opac, sh, deg, vm, campos, cam, width
                     colors[c, n, ch] = max(acc + 0.5, 0.0)
 
 
+VM_BLOCK = 256  # Gaussians per block of the backward: the camera-gradient partial sums are per block
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _project_backward(means, quats, scales, opac, sh, deg, vm, campos, cam, near, far, eps2d,
-                      g_m2d, g_con, g_dep, g_col, g_means, g_quats, g_scales, g_sh):
+                      g_m2d, g_con, g_dep, g_col, g_means, g_quats, g_scales, g_sh, want_vm, g_vm):
+    """Gradients per Gaussian (summed over the cameras in camera order) and, with ``want_vm``, per camera:
+    g_vm[block, c, 0:12] = dL/d(viewmat[c][:3, :4]) row-major through the camera point t = W p + tw and the
+    Jacobian T = J W, g_vm[block, c, 12:15] = dL/d(camera centre) of the SH directions, each summed over the
+    block's Gaussians in index order (fixed blocks of VM_BLOCK: the sums do not depend on the thread count)."""
     N, C = means.shape[0], vm.shape[0]
     K = (deg + 1) * (deg + 1)
-    for n in prange(N):
-        finite = _finite_row(means, quats, scales, opac, n)
-        if not finite:
-            continue  # torch.where in the oracle: exactly zero gradient for the whole row
+    n_blocks = (N + VM_BLOCK - 1) // VM_BLOCK
+    for blk in prange(n_blocks):
         basis = np.empty(16)
         gb = np.empty(16)
-        px, py, pz, qw, qx, qy, qz, inv, sq, sx, sy, sz = _inputs(means, quats, scales, n, finite)
-        r, m, S = _sigma(qw, qx, qy, qz, inv, sx, sy, sz)
-        gpx = gpy = gpz = 0.0
-        gS = np.zeros(9)  # dL/dSigma (as a general 3x3), summed over cameras
         u = np.empty(3)
         v = np.empty(3)
-        for c in range(C):
-            fx, fy = cam[c, 0], cam[c, 1]
-            x, y, zr, valid, z, xz, yz, cxz, cyz = _camera(vm, c, px, py, pz, cam, near, far, finite)
-            tx, ty = z * cxz, z * cyz
-            rz, t0, t1 = _jw(vm, c, fx, fy, z, tx, ty)
-            c11, c12, c22 = _cov2d(t0, t1, S, eps2d)
-            det_raw = c11 * c22 - c12 * c12
-            det = max(det_raw, 1e-12)
-            ga, gbb, gc = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
-            # conic = (c22, -c12, c11) / det
-            g11 = gc / det
-            g12 = -gbb / det
-            g22 = ga / det
-            if det_raw >= 1e-12:
-                gdet = -(ga * c22 - gbb * c12 + gc * c11) / (det * det)
-                g11 += gdet * c22
-                g22 += gdet * c11
-                g12 -= 2.0 * gdet * c12
-            # cov = T Sigma T^T with G = [[g11, g12/2], [g12/2, g22]] (symmetric):
-            # dL/dSigma += T^T G T ; dL/dT = 2 G T Sigma
-            h = 0.5 * g12
+        gS = np.empty(9)  # dL/dSigma (as a general 3x3), summed over cameras
+        for n in range(blk * VM_BLOCK, min(N, (blk + 1) * VM_BLOCK)):
+            finite = _finite_row(means, quats, scales, opac, n)
+            if not finite:
+                continue  # torch.where in the oracle: exactly zero gradient for the whole row
+            px, py, pz, qw, qx, qy, qz, inv, sq, sx, sy, sz = _inputs(means, quats, scales, n, finite)
+            r, m, S = _sigma(qw, qx, qy, qz, inv, sx, sy, sz)
+            gpx = gpy = gpz = 0.0
+            gS[:] = 0.0
+            for c in range(C):
+                fx, fy = cam[c, 0], cam[c, 1]
+                x, y, zr, valid, z, xz, yz, cxz, cyz = _camera(vm, c, px, py, pz, cam, near, far, finite)
+                tx, ty = z * cxz, z * cyz
+                rz, t0, t1 = _jw(vm, c, fx, fy, z, tx, ty)
+                c11, c12, c22 = _cov2d(t0, t1, S, eps2d)
+                det_raw = c11 * c22 - c12 * c12
+                det = max(det_raw, 1e-12)
+                ga, gbb, gc = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
+                # conic = (c22, -c12, c11) / det
+                g11 = gc / det
+                g12 = -gbb / det
+                g22 = ga / det
+                if det_raw >= 1e-12:
+                    gdet = -(ga * c22 - gbb * c12 + gc * c11) / (det * det)
+                    g11 += gdet * c22
+                    g22 += gdet * c11
+                    g12 -= 2.0 * gdet * c12
+                # cov = T Sigma T^T with G = [[g11, g12/2], [g12/2, g22]] (symmetric):
+                # dL/dSigma += T^T G T ; dL/dT = 2 G T Sigma
+                h = 0.5 * g12
+                for i in range(3):
+                    for j in range(3):
+                        gS[i * 3 + j] += (g11 * t0[i] * t0[j] + h * (t0[i] * t1[j] + t1[i] * t0[j])
+                                          + g22 * t1[i] * t1[j])
+                for i in range(3):
+                    u[i] = S[i * 3] * t0[0] + S[i * 3 + 1] * t0[1] + S[i * 3 + 2] * t0[2]
+                    v[i] = S[i * 3] * t1[0] + S[i * 3 + 1] * t1[1] + S[i * 3 + 2] * t1[2]
+                gT0 = (2.0 * (g11 * u[0] + h * v[0]), 2.0 * (g11 * u[1] + h * v[1]),
+                       2.0 * (g11 * u[2] + h * v[2]))
+                gT1 = (2.0 * (h * u[0] + g22 * v[0]), 2.0 * (h * u[1] + g22 * v[1]),
+                       2.0 * (h * u[2] + g22 * v[2]))
+                # T = J W: dL/dJ = dL/dT W^T
+                gj00 = gT0[0] * vm[c, 0, 0] + gT0[1] * vm[c, 0, 1] + gT0[2] * vm[c, 0, 2]
+                gj02 = gT0[0] * vm[c, 2, 0] + gT0[1] * vm[c, 2, 1] + gT0[2] * vm[c, 2, 2]
+                gj11 = gT1[0] * vm[c, 1, 0] + gT1[1] * vm[c, 1, 1] + gT1[2] * vm[c, 1, 2]
+                gj12 = gT1[0] * vm[c, 2, 0] + gT1[1] * vm[c, 2, 1] + gT1[2] * vm[c, 2, 2]
+                grz = fx * gj00 + fy * gj11 - 2.0 * fx * tx * rz * gj02 - 2.0 * fy * ty * rz * gj12
+                gtx = -fx * rz * rz * gj02
+                gty = -fy * rz * rz * gj12
+                gz = -grz * rz * rz + gtx * cxz + gty * cyz
+                gxz = fx * g_m2d[c, n, 0]
+                gyz = fy * g_m2d[c, n, 1]
+                if xz > -cam[c, 4] and xz < cam[c, 5]:
+                    gxz += gtx * z
+                if yz > -cam[c, 6] and yz < cam[c, 7]:
+                    gyz += gty * z
+                gx = gxz / z
+                gy = gyz / z
+                gz -= (gxz * x + gyz * y) / (z * z)
+                gzr = g_dep[c, n] + (gz if valid else 0.0)
+                # (gx, gy, gzr) = dL/d(camera point t); t = W p + tw
+                for i in range(3):
+                    g = vm[c, 0, i] * gx + vm[c, 1, i] * gy + vm[c, 2, i] * gzr
+                    if i == 0:
+                        gpx += g
+                    elif i == 1:
+                        gpy += g
+                    else:
+                        gpz += g
+                if want_vm:
+                    # dL/dW = dL/dt p^T + J^T dL/dT, J = [[j00, 0, j02], [0, j11, j12]]; dL/dtw = dL/dt
+                    j00, j02, j11, j12 = fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
+                    for j in range(3):
+                        pj = px if j == 0 else (py if j == 1 else pz)
+                        g_vm[blk, c, j] += gx * pj + j00 * gT0[j]
+                        g_vm[blk, c, 4 + j] += gy * pj + j11 * gT1[j]
+                        g_vm[blk, c, 8 + j] += gzr * pj + j02 * gT0[j] + j12 * gT1[j]
+                    g_vm[blk, c, 3] += gx
+                    g_vm[blk, c, 7] += gy
+                    g_vm[blk, c, 11] += gzr
+                if deg >= 0:
+                    dx, dy, dz = px - campos[c, 0], py - campos[c, 1], pz - campos[c, 2]
+                    d2r = dx * dx + dy * dy + dz * dz
+                    d2 = max(d2r, 1e-24)
+                    di = 1.0 / math.sqrt(d2)
+                    ux, uy, uz = dx * di, dy * di, dz * di
+                    _sh_basis(deg, ux, uy, uz, basis)
+                    for k in range(K):
+                        gb[k] = 0.0
+                    for ch in range(3):
+                        acc = 0.0
+                        for k in range(K):
+                            acc += basis[k] * sh[n, k, ch]
+                        if acc + 0.5 >= 0.0:
+                            gcol = g_col[c, n, ch]
+                            for k in range(K):
+                                g_sh[n, k, ch] += basis[k] * gcol
+                                gb[k] += sh[n, k, ch] * gcol
+                    gux, guy, guz = _sh_basis_vjp(deg, ux, uy, uz, gb)
+                    # d = p - campos: dL/dd is dL/dp's SH part and minus dL/dcampos
+                    gdx, gdy, gdz = gux * di, guy * di, guz * di
+                    if d2r >= 1e-24:
+                        dot = (gux * dx + guy * dy + guz * dz) * di * di * di
+                        gdx -= dx * dot
+                        gdy -= dy * dot
+                        gdz -= dz * dot
+                    gpx += gdx
+                    gpy += gdy
+                    gpz += gdz
+                    if want_vm:
+                        g_vm[blk, c, 12] -= gdx
+                        g_vm[blk, c, 13] -= gdy
+                        g_vm[blk, c, 14] -= gdz
+            g_means[n, 0], g_means[n, 1], g_means[n, 2] = gpx, gpy, gpz
+            # Sigma = M M^T, M = R diag(s): dL/dM = (gS + gS^T) M
+            gM = np.empty(9)
             for i in range(3):
                 for j in range(3):
-                    gS[i * 3 + j] += (g11 * t0[i] * t0[j] + h * (t0[i] * t1[j] + t1[i] * t0[j])
-                                      + g22 * t1[i] * t1[j])
-            for i in range(3):
-                u[i] = S[i * 3] * t0[0] + S[i * 3 + 1] * t0[1] + S[i * 3 + 2] * t0[2]
-                v[i] = S[i * 3] * t1[0] + S[i * 3 + 1] * t1[1] + S[i * 3 + 2] * t1[2]
-            gT0 = (2.0 * (g11 * u[0] + h * v[0]), 2.0 * (g11 * u[1] + h * v[1]), 2.0 * (g11 * u[2] + h * v[2]))
-            gT1 = (2.0 * (h * u[0] + g22 * v[0]), 2.0 * (h * u[1] + g22 * v[1]), 2.0 * (h * u[2] + g22 * v[2]))
-            # T = J W: dL/dJ = dL/dT W^T
-            gj00 = gT0[0] * vm[c, 0, 0] + gT0[1] * vm[c, 0, 1] + gT0[2] * vm[c, 0, 2]
-            gj02 = gT0[0] * vm[c, 2, 0] + gT0[1] * vm[c, 2, 1] + gT0[2] * vm[c, 2, 2]
-            gj11 = gT1[0] * vm[c, 1, 0] + gT1[1] * vm[c, 1, 1] + gT1[2] * vm[c, 1, 2]
-            gj12 = gT1[0] * vm[c, 2, 0] + gT1[1] * vm[c, 2, 1] + gT1[2] * vm[c, 2, 2]
-            grz = fx * gj00 + fy * gj11 - 2.0 * fx * tx * rz * gj02 - 2.0 * fy * ty * rz * gj12
-            gtx = -fx * rz * rz * gj02
-            gty = -fy * rz * rz * gj12
-            gz = -grz * rz * rz + gtx * cxz + gty * cyz
-            gxz = fx * g_m2d[c, n, 0]
-            gyz = fy * g_m2d[c, n, 1]
-            if xz > -cam[c, 4] and xz < cam[c, 5]:
-                gxz += gtx * z
-            if yz > -cam[c, 6] and yz < cam[c, 7]:
-                gyz += gty * z
-            gx = gxz / z
-            gy = gyz / z
-            gz -= (gxz * x + gyz * y) / (z * z)
-            gzr = g_dep[c, n] + (gz if valid else 0.0)
-            for i in range(3):
-                g = vm[c, 0, i] * gx + vm[c, 1, i] * gy + vm[c, 2, i] * gzr
-                if i == 0:
-                    gpx += g
-                elif i == 1:
-                    gpy += g
-                else:
-                    gpz += g
-            if deg >= 0:
-                dx, dy, dz = px - campos[c, 0], py - campos[c, 1], pz - campos[c, 2]
-                d2r = dx * dx + dy * dy + dz * dz
-                d2 = max(d2r, 1e-24)
-                di = 1.0 / math.sqrt(d2)
-                ux, uy, uz = dx * di, dy * di, dz * di
-                _sh_basis(deg, ux, uy, uz, basis)
-                for k in range(K):
-                    gb[k] = 0.0
-                for ch in range(3):
                     acc = 0.0
-                    for k in range(K):
-                        acc += basis[k] * sh[n, k, ch]
-                    if acc + 0.5 >= 0.0:
-                        gcol = g_col[c, n, ch]
-                        for k in range(K):
-                            g_sh[n, k, ch] += basis[k] * gcol
-                            gb[k] += sh[n, k, ch] * gcol
-                gux, guy, guz = _sh_basis_vjp(deg, ux, uy, uz, gb)
-                gpx += gux * di
-                gpy += guy * di
-                gpz += guz * di
-                if d2r >= 1e-24:
-                    dot = (gux * dx + guy * dy + guz * dz) * di * di * di
-                    gpx -= dx * dot
-                    gpy -= dy * dot
-                    gpz -= dz * dot
-        g_means[n, 0], g_means[n, 1], g_means[n, 2] = gpx, gpy, gpz
-        # Sigma = M M^T, M = R diag(s): dL/dM = (gS + gS^T) M
-        gM = np.empty(9)
-        for i in range(3):
-            for j in range(3):
-                acc = 0.0
-                for k in range(3):
-                    acc += (gS[i * 3 + k] + gS[k * 3 + i]) * m[k * 3 + j]
-                gM[i * 3 + j] = acc
-        gsx = gM[0] * r[0] + gM[3] * r[3] + gM[6] * r[6]
-        gsy = gM[1] * r[1] + gM[4] * r[4] + gM[7] * r[7]
-        gsz = gM[2] * r[2] + gM[5] * r[5] + gM[8] * r[8]
-        g_scales[n, 0], g_scales[n, 1], g_scales[n, 2] = gsx, gsy, gsz
-        G = np.empty(9)
-        for i in range(3):
-            G[i * 3] = gM[i * 3] * sx
-            G[i * 3 + 1] = gM[i * 3 + 1] * sy
-            G[i * 3 + 2] = gM[i * 3 + 2] * sz
-        w, a, b, d = qw * inv, qx * inv, qy * inv, qz * inv
-        gw = 2.0 * (-G[1] * d + G[2] * b + G[3] * d - G[5] * a - G[6] * b + G[7] * a)
-        ga_ = 2.0 * (G[1] * b + G[2] * d + G[3] * b - 2.0 * G[4] * a - G[5] * w + G[6] * d + G[7] * w
-                     - 2.0 * G[8] * a)
-        gb_ = 2.0 * (-2.0 * G[0] * b + G[1] * a + G[2] * w + G[3] * a + G[5] * d - G[6] * w + G[7] * d
-                     - 2.0 * G[8] * b)
-        gd = 2.0 * (-2.0 * G[0] * d - G[1] * w + G[2] * a + G[3] * w - 2.0 * G[4] * d + G[5] * b + G[6] * a
-                    + G[7] * b)
-        # q_n = q * inv, inv = 1/sqrt(max(|q|^2, 1e-24))
-        dot = 0.0
-        if sq >= 1e-24:
-            dot = (gw * qw + ga_ * qx + gb_ * qy + gd * qz) * inv * inv * inv
-        g_quats[n, 0] = gw * inv - qw * dot
-        g_quats[n, 1] = ga_ * inv - qx * dot
-        g_quats[n, 2] = gb_ * inv - qy * dot
-        g_quats[n, 3] = gd * inv - qz * dot
+                    for k in range(3):
+                        acc += (gS[i * 3 + k] + gS[k * 3 + i]) * m[k * 3 + j]
+                    gM[i * 3 + j] = acc
+            gsx = gM[0] * r[0] + gM[3] * r[3] + gM[6] * r[6]
+            gsy = gM[1] * r[1] + gM[4] * r[4] + gM[7] * r[7]
+            gsz = gM[2] * r[2] + gM[5] * r[5] + gM[8] * r[8]
+            g_scales[n, 0], g_scales[n, 1], g_scales[n, 2] = gsx, gsy, gsz
+            G = np.empty(9)
+            for i in range(3):
+                G[i * 3] = gM[i * 3] * sx
+                G[i * 3 + 1] = gM[i * 3 + 1] * sy
+                G[i * 3 + 2] = gM[i * 3 + 2] * sz
+            w, a, b, d = qw * inv, qx * inv, qy * inv, qz * inv
+            gw = 2.0 * (-G[1] * d + G[2] * b + G[3] * d - G[5] * a - G[6] * b + G[7] * a)
+            ga_ = 2.0 * (G[1] * b + G[2] * d + G[3] * b - 2.0 * G[4] * a - G[5] * w + G[6] * d + G[7] * w
+                         - 2.0 * G[8] * a)
+            gb_ = 2.0 * (-2.0 * G[0] * b + G[1] * a + G[2] * w + G[3] * a + G[5] * d - G[6] * w + G[7] * d
+                         - 2.0 * G[8] * b)
+            gd = 2.0 * (-2.0 * G[0] * d - G[1] * w + G[2] * a + G[3] * w - 2.0 * G[4] * d + G[5] * b
+                        + G[6] * a + G[7] * b)
+            # q_n = q * inv, inv = 1/sqrt(max(|q|^2, 1e-24))
+            dot = 0.0
+            if sq >= 1e-24:
+                dot = (gw * qw + ga_ * qx + gb_ * qy + gd * qz) * inv * inv * inv
+            g_quats[n, 0] = gw * inv - qw * dot
+            g_quats[n, 1] = ga_ * inv - qx * dot
+            g_quats[n, 2] = gb_ * inv - qy * dot
+            g_quats[n, 3] = gd * inv - qz * dot
 
 
 def _f64(t: torch.Tensor) -> np.ndarray:
@@ -420,6 +456,7 @@ class _ProjectCPU(torch.autograd.Function):
         _parallel(_project_forward, m, q, s, o, shc, deg, vm, campos, cam, width, height, near, far, eps2d, amin,
                   means2d, conics, depths, colors, radii)
         ctx.arrays = (m, q, s, o, shc, vm, campos, cam)
+        ctx.vm_dtype = viewmats.dtype
         ctx.consts = (deg, near, far, eps2d, dtype, tuple(sh.shape))
         out = [torch.from_numpy(a).to(dtype) for a in (means2d, conics, depths, colors)]
         r = torch.from_numpy(radii)
@@ -444,18 +481,44 @@ class _ProjectCPU(torch.autograd.Function):
         g_quats[:] = 0.0
         g_scales[:] = 0.0
         g_sh = np.zeros((N, shc.shape[1], 3))
+        want_vm = bool(ctx.needs_input_grad[5])
+        g_vm = np.zeros(((N + VM_BLOCK - 1) // VM_BLOCK if want_vm else 1, C, 15))
         _parallel(_project_backward, m, q, s, o, shc, deg, vm, campos, cam, near, far, eps2d,
-                  gm2d, gcon, gdep, gcol, g_means, g_quats, g_scales, g_sh)
+                  gm2d, gcon, gdep, gcol, g_means, g_quats, g_scales, g_sh, want_vm, g_vm)
         grad_sh = torch.from_numpy(g_sh).to(dtype) if deg >= 0 and ctx.needs_input_grad[4] else None
         t = lambda a: torch.from_numpy(a).to(dtype)  # noqa: E731
-        return (t(g_means), t(g_quats), t(g_scales), None, grad_sh, None, None, None, None, None, None, None, None)
+        grad_vm = t(viewmat_grad(g_vm, vm)).to(ctx.vm_dtype) if want_vm else None
+        return (t(g_means), t(g_quats), t(g_scales), None, grad_sh, grad_vm, None, None, None, None, None, None,
+                None)
+
+
+def viewmat_grad(g_vm: np.ndarray, vm: np.ndarray) -> np.ndarray:
+    """(blocks, C, 15) per-block partial sums of the backward kernel -> dL/d(viewmats) (C, 4, 4).
+
+    The blocks are added in block order (a fixed order: thread-count independent). Entries 0:12 are the
+    gradient of the 3x4 top of each viewmat through the camera point and the EWA Jacobian. Entries 12:15 are
+    dL/d(campos) of the SH view directions, with campos = inv(viewmat)[:3, 3] exactly as the torch path
+    computes it (``torch.linalg.inv``), so its gradient is the inverse's: dL/dV = -V^-T G V^-T with G zero
+    but for column 3, rows 0-2 = dL/dcampos. That is -(V^-1[:3, :])^T g (x) V^-1[:, 3], which also reaches
+    the bottom row of V; on rotations (dR = Omega R) it equals the gradient of campos = -R^T t."""
+    acc = np.zeros(g_vm.shape[1:])
+    for b in range(g_vm.shape[0]):
+        acc += g_vm[b]
+    C = vm.shape[0]
+    out = np.zeros((C, 4, 4))
+    out[:, :3, :] = acc[:, :12].reshape(C, 3, 4)
+    inv = np.linalg.inv(vm)
+    a = np.einsum("cij,ci->cj", inv[:, :3, :], acc[:, 12:15])  # (C, 4): (V^-1[:3, :])^T g
+    out -= a[:, :, None] * inv[:, None, :, 3]
+    return out
 
 
 def project_sh_cpu(means, quats, scales, opacities, sh, viewmats, K, width: int, height: int, *,
                    sh_degree: int | None, near: float = 0.01, far: float = 1e10, eps2d: float = 0.3):
     """Project N Gaussians into C cameras (viewmats (C, 4, 4)) and, with SH coefficients sh (N, K, 3) and
     sh_degree, evaluate their colours per camera. Returns means2d (C,N,2), conics (C,N,3), depths (C,N),
-    colors (C,N,3) (None without SH) and radii (C,N) int32; differentiable in means, quats, scales and sh."""
+    colors (C,N,3) (None without SH) and radii (C,N) int32; differentiable in means, quats, scales, sh and
+    viewmats."""
     deg = -1 if sh_degree is None else int(sh_degree)
     sh_in = sh[:, :max(1, (deg + 1) ** 2)] if deg >= 0 else means.new_zeros((means.shape[0], 1, 3))
     means2d, conics, depths, colors, radii = _ProjectCPU.apply(

@@ -15,8 +15,10 @@ camera's image and gradients are bitwise those of its own single-camera call. Ot
 cameras (their stacked meta["means2d"] then carries no gradient: render per camera for densification).
 
 Backends: "reference" (plain torch, the test oracle), "cpu" (numba kernels, exact), "cuda" (gsplat, when
-CUDA and gsplat are available), "auto" (cuda for CUDA tensors when possible, else cpu). The cpu backend uses
-the torch projection instead when viewmat or K requires a gradient.
+CUDA and gsplat are available), "auto" (cuda for CUDA tensors when possible, else cpu). Every backend
+differentiates the view matrix (camera gradients for pose refinement): reference by autograd, cpu by its
+hand-written projection backward (project_cpu.py), cuda by gsplat. The cpu backend uses the torch projection
+instead when K requires a gradient.
 """
 from __future__ import annotations
 
@@ -68,7 +70,7 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
     _check(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree)
     if backend == "auto":
         backend = "cuda" if means.is_cuda and cuda_available() else "cpu"
-    if backend == "cpu" and not (viewmat.requires_grad or K.requires_grad or means.is_cuda):
+    if backend == "cpu" and not (K.requires_grad or means.is_cuda):
         return _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree,
                                   near_plane, far_plane, eps2d, background, render_mode, threads)
     if viewmat.ndim == 3:  # one camera at a time, stacked (the oracle for the batched cpu path)

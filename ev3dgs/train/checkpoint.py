@@ -37,6 +37,7 @@ def save_checkpoint(path: Path, trainer) -> None:
         "threshold_opt": None if trainer.threshold_opt is None else trainer.threshold_opt.state_dict(),
         "config": asdict(trainer.cfg),
         "scene": scene_fingerprint(trainer.data),
+        "pose_refiner": None if getattr(trainer, "pose_refiner", None) is None else trainer.pose_refiner.state_dict(),
     }
     from ..outputs import atomic_path
 
@@ -103,4 +104,6 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
         trainer.thresholds[k].data.copy_(v)
     if trainer.threshold_opt is not None and payload["threshold_opt"] is not None:
         trainer.threshold_opt.load_state_dict(payload["threshold_opt"])
+    if getattr(trainer, "pose_refiner", None) is not None and payload.get("pose_refiner") is not None:
+        trainer.pose_refiner.load_state_dict(payload["pose_refiner"])
     trainer.step = int(payload["step"])

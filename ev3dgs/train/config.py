@@ -39,6 +39,15 @@ class TrainConfig:
     device: str = "auto"
     threads: int | None = None
     backend: str = "auto"
+    # exposure-trajectory refinement (pose_refine.py): per-view SE(3) corrections at exposure start and end
+    refine_poses: bool = False
+    pose_lr: float = 1e-3             # Adam lr of the corrections (rad; translation in scene-scale units)
+    pose_lr_final: float = 0.01       # the lr decays exponentially to pose_lr * pose_lr_final at the last step
+    pose_start: int = 100             # steps before the poses move (the Gaussians get a first fit)
+    pose_warmup: int = 100            # steps of linear lr warm-up after pose_start
+    pose_max_rotation: float = 5.0    # clamp of each correction's rotation (degrees)
+    pose_max_translation: float = 0.1  # clamp of each correction's translation (fraction of the scene scale)
+    pose_gauge: str = "similarity"    # remove the 7-dof similarity component of the corrections, or "none"
 
     def __post_init__(self):
         check(self.iterations >= 1, "--iterations must be >= 1")
@@ -59,6 +68,13 @@ class TrainConfig:
         check(self.device in ("auto", "cpu", "cuda"), "--device must be auto, cpu or cuda")
         check(self.threads is None or self.threads >= 1, "--threads must be >= 1")
         check(self.backend in ("auto", "reference", "cpu", "cuda"), "--backend must be auto, reference, cpu or cuda")
+        check(not (self.refine_poses and self.oracle), "--refine-poses with --oracle: the oracle's poses are exact")
+        check(self.pose_lr > 0 and self.pose_lr < 1, "--pose-lr must be in (0, 1)")
+        check(0 < self.pose_lr_final <= 1, "--pose-lr-final must be in (0, 1]")
+        check(self.pose_start >= 0 and self.pose_warmup >= 0, "--pose-start and --pose-warmup must be >= 0")
+        check(0 < self.pose_max_rotation <= 90, "--pose-max-rotation must be in (0, 90] degrees")
+        check(0 < self.pose_max_translation <= 10, "--pose-max-translation must be in (0, 10]")
+        check(self.pose_gauge in ("similarity", "none"), "--pose-gauge must be similarity or none")
 
     @property
     def uses_events(self) -> bool:

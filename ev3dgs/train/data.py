@@ -39,6 +39,7 @@ class TrainData:
     raw_matrix: np.ndarray | None = None    # /events camera_raw_matrix (Bayer pixels; None = identity)
     blur_space: str = "linear"         # resolved: how the trainer averages renders (blur_loss space)
     event_transfer: str = "srgb"       # resolved: what log_intensity decodes ("srgb", "linear", "display")
+    sub_c2w: np.ndarray | None = None  # (N,B,4,4) float64 camera-to-world of the sub-poses (pose refinement)
 
     @property
     def n_views(self) -> int:
@@ -114,5 +115,5 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
         bounds=None if sc.bounds is None else np.asarray(sc.bounds),
         transfer=transfer,
         count_convention=sc.sensor.count_convention or schema.default_count_convention(sc.source, sc.config),
-        raw_matrix=sc.sensor.camera_raw_matrix, blur_space=blur, event_transfer=ev_transfer,
+        raw_matrix=sc.sensor.camera_raw_matrix, blur_space=blur, event_transfer=ev_transfer, sub_c2w=sub,
     )

@@ -10,7 +10,18 @@ Evaluation protocol (E2NeRF / EvaGaussians), metrics.json keys:
 * "blurry_input": the blurry training frames against the blur-view ground truth (the baseline).
 Each is {"psnr", "ssim", "n", "psnr_per_view"}; "lpips" is null with its reason unless weights are given.
 "variant" is naive / blur-only / blur+event / oracle (TrainConfig.variant). The old keys "test" and
-"train_sharp" are kept as aliases of all /test views and of the /train/sharp blur views."""
+"train_sharp" are kept as aliases of all /test views and of the /train/sharp blur views.
+
+Runs trained with --refine-poses (RUN/trajectory.npz, pose_refine.py) live in the refined camera frame:
+* blur views are rendered at the refined trajectory's mid-exposure pose ("blur_view"); "blur_view_given_poses"
+  keeps the score at /train/sharp_poses as given.
+* novel views: the test cameras are given in the frame of the initial poses. As pose-free NeRF evaluations
+  do (BARF, NoPe-NeRF), they are mapped into the refined frame by the similarity that best takes the
+  training views' initial mid-exposure cameras onto their refined ones (``align_similarity``: rotation from
+  the orientations, then scale and translation from the centres); "novel_view" is scored at the aligned
+  cameras, "novel_view_unaligned" at the given ones, and "test_alignment" gives the transform. No per-view
+  test-time pose optimisation is done. (E2NeRF imports, whose blur views are /test views, use the aligned
+  /test cameras for both.)"""
 from __future__ import annotations
 
 import json
@@ -54,6 +65,26 @@ def render_views(model: GaussianModel, poses: np.ndarray, K, width, height, back
     return out
 
 
+def _refined_frame(run: Path, sc):
+    """(refined mid-exposure c2w (N,4,4), the test-camera alignment dict, initial mid c2w) of a
+    --refine-poses run, from RUN/trajectory.npz."""
+    from ..geometry import interpolate_pose, rotation_angle
+    from .pose_refine import align_similarity, load_trajectory
+
+    path = run / "trajectory.npz"
+    if not path.is_file():
+        raise InputError(f"{run}: trained with --refine-poses but {path.name} is missing (re-run the training)")
+    tj = load_trajectory(path, len(sc.train))
+    mid_t = np.asarray(sc.train.exposure, dtype=np.float64).mean(axis=1)
+    refined = np.stack([interpolate_pose(p, t, m) for p, t, m in zip(tj["poses"], tj["pose_t"], mid_t)])
+    initial = np.stack([interpolate_pose(p, t, m) for p, t, m in zip(tj["initial_poses"], tj["pose_t"], mid_t)])
+    s, R, t = align_similarity(initial, refined)
+    align = {"scale": s, "rotation": R.tolist(), "translation": t.tolist(),
+             "rotation_deg": float(np.degrees(rotation_angle(R))), "method": "similarity fitted from the "
+             "training views' initial to refined mid-exposure cameras (orientations, then centres)"}
+    return refined, align, initial
+
+
 def _scores(pred: list, truth) -> dict:
     p = [psnr(a, np.asarray(b)) for a, b in zip(pred, truth)]
     s = [ssim_metric(a, np.asarray(b)) for a, b in zip(pred, truth)]
@@ -91,8 +122,20 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
     out_dir = run / "eval"
     if write_images:
         out_dir.mkdir(exist_ok=True)
+    refined_mid = align = None
+    if cfg.refine_poses:
+        refined_mid, align, initial_mid = _refined_frame(run, sc)
+        metrics["test_alignment"] = align
     if sc.test is not None and len(sc.test.images):
-        pred = render_views(model, np.asarray(sc.test.poses), K, W, H, bg, cfg.backend)
+        test_poses = np.asarray(sc.test.poses)
+        if align is not None:
+            from .pose_refine import apply_similarity
+
+            unaligned = render_views(model, test_poses, K, W, H, bg, cfg.backend)
+            metrics["novel_view_unaligned"] = _scores(unaligned, np.asarray(sc.test.images))
+            test_poses = apply_similarity(test_poses, align["scale"], np.asarray(align["rotation"]),
+                                          np.asarray(align["translation"]))
+        pred = render_views(model, test_poses, K, W, H, bg, cfg.backend)
         truth = np.asarray(sc.test.images)
         metrics["test"] = _scores(pred, truth)
         novel = sc.config.get("test_novel_views") if sc.train.sharp is None else None
@@ -109,6 +152,9 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
     if tr.sharp is not None and tr.sharp_poses is not None:
         pred = render_views(model, np.asarray(tr.sharp_poses), K, W, H, bg, cfg.backend)
         sharp, blurry = np.asarray(tr.sharp), np.asarray(tr.images)
+        if refined_mid is not None:
+            metrics["blur_view_given_poses"] = _scores(pred, sharp)
+            pred = render_views(model, refined_mid, K, W, H, bg, cfg.backend)
         metrics["train_sharp"] = metrics["blur_view"] = _scores(pred, sharp)
         metrics["blurry_input"] = _scores(list(blurry), sharp)
         for i, (b, p, s) in enumerate(zip(blurry, pred, sharp)) if write_images else ():

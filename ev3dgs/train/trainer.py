@@ -116,6 +116,11 @@ class Trainer:
                               if cfg.learn_thresholds and cfg.uses_events else None)
         self.step = 0
         self.use_events = cfg.uses_events and self.data.bins is not None
+        self.pose_refiner = None  # --refine-poses (issue 16): learnable exposure-trajectory corrections
+        if cfg.refine_poses:
+            from .pose_refine import PoseRefiner
+
+            self.pose_refiner = PoseRefiner.for_training(self.data, cfg, self.device)
 
     # ------------------------------------------------------------------ helpers
     def _next_view(self) -> int:
@@ -148,6 +153,8 @@ class Trainer:
             self.model.active_sh_degree = min(self.model.sh_degree, self.model.active_sh_degree + 1)
         v = self._next_view()
         poses = data.mid_viewmats[v:v + 1] if cfg.naive else data.viewmats[v]
+        if self.pose_refiner is not None:  # the view's corrected sub-poses, differentiable in its corrections
+            poses = self.pose_refiner.viewmats(v, poses.dtype)
         # the b+1 sub-poses in one batched call (one projection, one binning, one kernel over (camera, tile));
         # the densification statistics still count every camera's render separately (info["n_cameras"])
         if self.cfg.backend == "cpu" or (self.cfg.backend == "auto" and self.device.type == "cpu"):
@@ -177,6 +184,7 @@ class Trainer:
         if self.threshold_opt is not None:
             self.threshold_opt.step()
             self.threshold_opt.zero_grad(set_to_none=True)
+        pose_info = self.pose_refiner.step(self.step) if self.pose_refiner is not None else {}
         refined = {}
         if cfg.densify:
             refined = self.strategy.step_post_backward(self.model, self.optimizers, self.strategy_state,
@@ -185,7 +193,7 @@ class Trainer:
         with torch.no_grad():
             p = psnr(stack.mean(0).clamp(0, 1), target)
         return {"step": self.step, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
-                "psnr_blurry": p, "gaussians": len(self.model), **refined}
+                "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info}
 
     def _guard(self, loss, l_blur, l_event) -> None:
         bad = not torch.isfinite(loss)
@@ -256,6 +264,10 @@ class Trainer:
         with atomic_path(self.run_dir / "model.pt") as tmp:  # on failure: temporary removed, OutputError
             torch.save({"model": self.model.state_dict(),
                         "thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()}}, tmp)
+        if self.pose_refiner is not None:  # the refined trajectory, read by eval
+            self.pose_refiner.save(self.run_dir / "trajectory.npz")
+        else:  # never leave an older run's trajectory beside this model
+            (self.run_dir / "trajectory.npz").unlink(missing_ok=True)
 
 
 def rollback_log(log_path: Path, step: int) -> None:

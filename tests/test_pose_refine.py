@@ -1,0 +1,239 @@
+"""--refine-poses (issue 16): the SE(3) corrections, their gauge fixing and guard, a known-scene
+convergence check through the cpu backend's camera gradient, the trainer/eval integration (trajectory.npz,
+reproducibility, resume) and the CLI's refusals."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ev3dgs.cli import main as cli
+from ev3dgs.geometry import look_at, relative_rotation_angle, rotvec_to_matrix
+from ev3dgs.splat.rasterize import rasterization
+from ev3dgs.train.config import TrainConfig
+from ev3dgs.train.pose_refine import (PoseRefiner, align_similarity, apply_similarity, gauge_basis,
+                                      load_trajectory, so3_exp)
+from test_reliability_training import _train, assert_bitwise_equal, make_scene
+
+F64 = torch.float64
+vec = st.lists(st.floats(-3, 3), min_size=3, max_size=3)
+
+
+@settings(max_examples=50, deadline=None)
+@given(vec)
+def test_so3_exp_is_rodrigues(w):
+    # closed forms on O(1) values: a few ulp per operation (conftest policy) -> 1e-12
+    got = so3_exp(torch.tensor(w, dtype=F64)).numpy()
+    assert np.abs(got - rotvec_to_matrix(np.array(w))).max() < 1e-12
+
+
+def test_so3_exp_gradient_finite_at_zero_and_matches_differences():
+    for w0 in ([0.0, 0.0, 0.0], [1e-5, -2e-5, 3e-6], [0.3, -0.2, 0.5]):
+        w = torch.tensor(w0, dtype=F64, requires_grad=True)
+        assert torch.autograd.gradcheck(so3_exp, (w,), eps=1e-7, atol=1e-7)
+    w = torch.zeros(3, dtype=F64, requires_grad=True)
+    so3_exp(w).sum().backward()
+    assert torch.isfinite(w.grad).all()
+
+
+def _refiner(n=4, b=3, gauge="similarity", **kw):
+    rng = np.random.default_rng(0)
+    c2w = np.stack([[look_at(3 * np.array([np.cos(a), np.sin(a), 0.3 + 0.1 * k]), [0, 0, 0]) for k in range(b)]
+                    for a in rng.uniform(0, 2 * np.pi, n)])
+    times = np.arange(n * b).reshape(n, b) * 1000
+    frac = np.tile(np.linspace(0, 1, b), (n, 1))
+    return PoseRefiner(c2w, times, frac, 3.3, gauge=gauge, **kw)
+
+
+def test_corrected_pose_is_left_perturbation_about_the_centre_interpolated():
+    r = _refiner()
+    xi = np.array([[0.01, -0.02, 0.03, 0.02, -0.01, 0.015], [-0.02, 0.0, 0.01, -0.01, 0.03, 0.0]])
+    with torch.no_grad():
+        r.params[1].copy_(torch.tensor(xi))
+    got = r.c2w(1).detach().numpy()
+    for k, a in enumerate(np.linspace(0, 1, 3)):
+        x = (1 - a) * xi[0] + a * xi[1]
+        assert np.abs(got[k, :3, :3] - rotvec_to_matrix(x[3:]) @ r.c2w0[1, k, :3, :3]).max() < 1e-12
+        assert np.abs(got[k, :3, 3] - (r.c2w0[1, k, :3, 3] + 3.3 * x[:3])).max() < 1e-12
+    vm = r.viewmats(1, F64).detach().numpy()
+    assert np.abs(vm @ got - np.eye(4)).max() < 1e-12
+
+
+def test_gauge_projection_removes_exactly_the_similarity_component():
+    r = _refiner(n=5)
+    rng = np.random.default_rng(1)
+    A = r._gauge_A
+    g = rng.normal(0, 0.01, 7)
+    free = rng.normal(0, 0.01, A.shape[0])
+    free -= A @ np.linalg.lstsq(A, free, rcond=None)[0]  # the part the losses can see
+    P = (A @ g + free).reshape(2, 5, 6).transpose(1, 0, 2)
+    with torch.no_grad():
+        for v, p in enumerate(r.params):
+            p.copy_(torch.tensor(P[v]))
+    r._project()
+    got = torch.stack(r.params).detach().numpy().transpose(1, 0, 2).reshape(-1)
+    assert np.abs(got - free).max() < 1e-14  # lstsq of a well-conditioned 7-column system: ~u * cond
+    # the basis is the first-order effect of a real similarity: check one generator by a finite step
+    s = 1e-6
+    ends = np.concatenate([r.c2w0[:, 0, :3, 3], r.c2w0[:, -1, :3, 3]])
+    o = ends.mean(0)
+    moved = o + (1 + s) * (ends - o)
+    assert np.abs((moved - ends) / 3.3 / s - gauge_basis(ends, 3.3)[:, :3, 6]).max() < 1e-9
+
+
+def test_guard_clamps_and_skips_non_finite_steps():
+    r = _refiner(gauge="none", max_rotation_deg=2.0, max_translation=0.05)
+    with torch.no_grad():
+        r.params[0].copy_(torch.tensor([[1.0, 0, 0, 0.5, 0, 0], [0, 0, 0, 0, 0, 0]], dtype=F64))
+    r._project()
+    p = r.params[0].detach()
+    assert abs(float(p[0, 3:].norm()) - math.radians(2.0)) < 1e-15 and abs(float(p[0, :3].norm()) - 0.05) < 1e-15
+    before = torch.stack([q.detach().clone() for q in r.params])
+    r.viewmats(2).sum().backward()
+    r.params[2].grad[0, 0] = float("nan")
+    info = r.step(10)
+    assert info["pose_skipped"] == 1 and torch.equal(before, torch.stack([q.detach() for q in r.params]))
+    assert all(q.grad is None for q in r.params)
+
+
+def test_lr_schedule():
+    r = _refiner(lr=1e-3, lr_final=0.01, start=10, warmup=10, iterations=110)
+    assert r.lr_at(9) == 0 and r.lr_at(10) == pytest.approx(1e-4) and r.lr_at(19) == pytest.approx(1e-3 * 0.01 ** 0.09)
+    assert r.lr_at(110) == pytest.approx(1e-5)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_align_similarity_recovers_a_known_transform(seed):
+    rng = np.random.default_rng(seed)
+    src = np.stack([look_at(rng.normal(0, 3, 3) + [0, 0, 5], rng.normal(0, 0.5, 3)) for _ in range(6)])
+    s, R, t = float(rng.uniform(0.5, 2)), rotvec_to_matrix(rng.normal(0, 1, 3)), rng.normal(0, 2, 3)
+    dst = apply_similarity(src, s, R, t)
+    s2, R2, t2 = align_similarity(src, dst)
+    # exact data: SVD + least squares on O(1) values, ~1e-14; 1e-9 leaves room for conditioning
+    assert abs(s2 - s) < 1e-9 and np.abs(R2 - R).max() < 1e-9 and np.abs(t2 - t).max() < 1e-9
+
+
+def test_known_scene_one_perturbed_camera_moves_toward_the_truth():
+    """A few fixed Gaussians, one camera whose trajectory is off by 1 degree and 2% of its distance; the
+    blur loss against renders at the true trajectory, through the cpu backend's camera gradient. Gauge
+    'none': the scene is known, nothing else can move. The Gaussians fill a deep box and the field of view is
+    wide (77 degrees), so a rotation is not mimicked by a translation (with a shallow scene and a narrow view
+    the pair sits in a flat valley of the loss and the error shrinks only slowly)."""
+    W, H = 48, 36
+    g = torch.Generator().manual_seed(3)
+    n = 40
+    means = (torch.rand(n, 3, generator=g, dtype=F64) - 0.5) * 2.5
+    quats = torch.randn(n, 4, generator=g, dtype=F64)
+    scales = 0.06 + 0.1 * torch.rand(n, 3, generator=g, dtype=F64)
+    opac = 0.6 + 0.3 * torch.rand(n, generator=g, dtype=F64)
+    cols = torch.rand(n, 3, generator=g, dtype=F64)
+    K = torch.tensor([[30.0, 0, (W - 1) / 2], [0, 30.0, (H - 1) / 2], [0, 0, 1]], dtype=F64)
+    true = np.stack([look_at([3.0, 0.2 * k, 0.5], [0, 0, 0]) for k in range(3)])  # (B=3) sub-poses
+    err = np.eye(4)
+    err[:3, :3] = rotvec_to_matrix(np.radians(1.0) * np.array([0.6, 0.0, 0.8]))
+    start = true.copy()
+    start[:, :3, :3] = err[:3, :3] @ true[:, :3, :3]
+    start[:, :3, 3] += 0.02 * 3.0 * np.array([0.0, 0.6, -0.8])
+    r = PoseRefiner(start[None], np.array([[0, 500, 1000]]), np.array([[0.0, 0.5, 1.0]]), 3.0, lr=5e-3,
+                    lr_final=0.05, iterations=200, gauge="none")
+
+    def render(vm):
+        return rasterization(means, quats, scales, opac, cols, vm, K, W, H, backend="cpu")[0]
+
+    with torch.no_grad():
+        target = render(torch.tensor(np.linalg.inv(true))).mean(0)
+
+    def errors():
+        c = r.all_c2w()[0]
+        return (float(np.degrees(relative_rotation_angle(c[1, :3, :3], true[1, :3, :3]))),
+                float(np.linalg.norm(c[1, :3, 3] - true[1, :3, 3])))
+
+    rot0, trn0 = errors()
+    for step in range(200):
+        loss = ((render(r.viewmats(0, F64)).mean(0) - target) ** 2).mean()
+        loss.backward()
+        r.step(step)
+    rot1, trn1 = errors()
+    assert rot0 == pytest.approx(1.0, abs=1e-9) and trn0 == pytest.approx(0.06, abs=1e-9)
+    # a deterministic optimisation (fixed scene, exact gradients); seen: 1 -> 0.03 deg, 0.06 -> 0.0017. The
+    # bound asks for a fivefold reduction of both, far from what a wrong gradient sign or scale would give
+    assert rot1 < 0.2 * rot0 and trn1 < 0.2 * trn0, (rot0, rot1, trn0, trn1)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> str:
+    return make_scene(tmp_path_factory.mktemp("scene") / "tiny.h5")
+
+
+def _cfg(scene, **kw):
+    base = dict(scene=scene, iterations=8, subposes=3, init_points=300, sh_degree=1, sh_interval=3,
+                checkpoint_every=1000, seed=7, device="cpu", backend="cpu", refine_poses=True, pose_start=2,
+                pose_warmup=2, pose_lr=5e-3)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_training_with_refinement_is_reproducible_saves_and_evaluates(scene, tmp_path):
+    cfg = _cfg(scene)
+    one = _train(cfg, tmp_path / "a", torch_threads=1, numba_threads=1)
+    two = _train(TrainConfig(**{**cfg.__dict__, "threads": 2}), tmp_path / "b", torch_threads=2, numba_threads=2)
+    two["config"]["threads"] = None
+    assert_bitwise_equal(one, two)
+    tj = load_trajectory(tmp_path / "a" / "trajectory.npz", 4)
+    assert tj["poses"].shape == (4, 3, 4, 4) and tj["pose_t"].shape == (4, 3)
+    moved = np.abs(tj["poses"] - tj["initial_poses"]).max()
+    assert moved > 0 and np.abs(one["pose_refiner"]["params"]).max() > 0
+    assert np.array_equal(np.load(tmp_path / "b" / "trajectory.npz")["poses"], tj["poses"])
+
+
+def test_resume_continues_the_refinement_exactly(scene, tmp_path):
+    from ev3dgs.train.trainer import Trainer
+
+    whole = Trainer(_cfg(scene, iterations=8, checkpoint_every=4), tmp_path / "w", quiet=True)
+    whole.fit()
+    part = Trainer(_cfg(scene, iterations=8, checkpoint_every=4), tmp_path / "p", quiet=True)
+
+    def stop(trainer, rec):  # a run killed right after its step-4 checkpoint
+        if trainer.step == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        part.fit(on_step=stop)
+    rest = Trainer(_cfg(scene, iterations=8, checkpoint_every=4), tmp_path / "p", quiet=True)
+    rest.fit(resume=True)
+    a, b = whole.pose_refiner.state_dict(), rest.pose_refiner.state_dict()
+    assert torch.equal(a["params"], b["params"])
+
+
+def test_eval_uses_the_trajectory_and_cli_refusals(scene, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert cli.main(["train", scene, "--out", str(out), "--iterations", "3", "--init-points", "200",
+                     "--subposes", "3", "--sh-degree", "0", "--device", "cpu", "--refine-poses", "--pose-start",
+                     "0", "--quiet"]) == 0
+    assert (out / "trajectory.npz").is_file()
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["refine_poses"] is True
+    for bad in (["--pose-lr", "0"], ["--pose-max-rotation", "-1"], ["--refine-poses", "--oracle"],
+                ["--pose-gauge", "mean"]):
+        with pytest.raises(SystemExit) if bad[0] == "--pose-gauge" else _no_raise():
+            assert cli.main(["train", scene, "--out", str(tmp_path / "x"), "--refine-poses", *bad]) == 2
+    (out / "trajectory.npz").write_bytes(b"not a zip")
+    from ev3dgs.errors import InputError
+    from ev3dgs.train.evaluate import evaluate
+
+    with pytest.raises(InputError, match="trajectory.npz"):
+        evaluate(out, device="cpu", write_images=False)
+
+
+class _no_raise:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        return False

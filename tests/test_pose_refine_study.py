@@ -1,0 +1,35 @@
+"""The pose-refinement study end to end on a small simulated scene (slow: simulates a scene and trains three
+times). Verification on a known trajectory: every training view's poses are moved by 1 degree and 2% of the
+camera distance; refinement must reduce the mid-exposure rotation error against the truth and beat training
+on the perturbed poses in blur-view PSNR, and eval must report aligned and unaligned novel views."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+
+
+@pytest.mark.slow
+def test_refinement_reduces_pose_error_and_improves_blur_views(tmp_path):
+    import study_refine
+
+    out = tmp_path / "study.json"
+    assert study_refine.main(["--quick", "--size", "48x36", "--views", "6", "--iterations", "400",
+                              "--json", str(out), "--plot", str(tmp_path / "study.png")]) == 0
+    d = json.loads(out.read_text())
+    before = d["pose_errors_before"]
+    assert abs(before["rotation_deg_mean_unaligned"] - 1.0) < 1e-6  # the perturbation is what it says
+    ref = next(v for k, v in d["runs"].items() if "refine" in k)
+    pert, true = d["runs"]["perturbed"], d["runs"]["true poses"]
+    # a statistical outcome of one seeded run (the optimisation is deterministic on the CPU): the study at
+    # 64x48 / 500 steps measured 1.00 -> 0.79 deg and +5.0 dB; the bounds ask for the direction and a margin
+    assert ref["pose_errors_after"]["rotation_deg_median"] < before["rotation_deg_median"]
+    assert ref["blur_view_psnr"] > pert["blur_view_psnr"] + 1.0
+    assert ref["blur_view_psnr"] > pert["blur_view_psnr_training_poses"]
+    assert true["blur_view_psnr"] > pert["blur_view_psnr"]
+    assert "novel_view_psnr_unaligned" in ref and ref["pose_steps_skipped"] == 0
+    assert (tmp_path / "study.png").stat().st_size > 0
