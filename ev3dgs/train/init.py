@@ -7,10 +7,11 @@ sum_i (I - d_i d_i^T) x = sum_i (I - d_i d_i^T) C_i. For an orbit of cameras aim
 point exactly. Size: at the centre's median depth z in front of the cameras, the cube's half-width is
 z * tan(half field of view) along the narrower image axis, so it covers what the cameras see there.
 
-When the axes are (nearly) parallel (a forward-facing rig) or the point lies behind most cameras (an
-inside-out rig) the cameras do not say where they look; then the centre is put along the mean viewing
-direction at the world origin's depth when the origin is in front of the cameras (scenes are usually built
-around it), else at unit depth, and the cube is sized in the same way.
+When the axes are (nearly) parallel (a forward-facing rig) or the point lies behind most cameras, the
+cameras do not say where they look: if they face one general way (mean viewing direction of length >= 0.5)
+the centre is put along it at the world origin's depth when the origin is in front of them (scenes are
+usually built around it), else at unit depth; if they look all around (an inside-out rig) the centre is the
+cameras' mean position. The cube is sized in the same way.
 """
 from __future__ import annotations
 
@@ -35,7 +36,9 @@ def look_centre(centres: np.ndarray, forwards: np.ndarray) -> tuple[np.ndarray, 
         if np.median(np.einsum("ni,ni->n", x[None] - c, d)) > 0:
             return x, True
     mean_dir = d.mean(axis=0)
-    mean_dir /= max(np.linalg.norm(mean_dir), 1e-12)
+    if np.linalg.norm(mean_dir) < 0.5:  # the cameras look all around (inside-out): the scene surrounds them
+        return c.mean(axis=0), False
+    mean_dir /= np.linalg.norm(mean_dir)
     origin_depth = float(np.median((0.0 - c) @ mean_dir))
     depth = origin_depth if origin_depth > 0 else 1.0
     return c.mean(axis=0) + depth * mean_dir, False
