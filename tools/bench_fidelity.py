@@ -212,9 +212,9 @@ def plot(summary: dict, png: Path, variants=VARIANTS) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="lego, one seed, small size (<= 10 minutes on 2 cores)")
+    ap.add_argument("--quick", action="store_true", help="lego, one seed, 96x72, 400 steps (<= 10 minutes on 2 cores; default: off, the full 4-scene table)")
     ap.add_argument("--scenes", nargs="+", help="built-in scene names (default: all built-in scenes)")
-    ap.add_argument("--seeds", type=int, help="training seeds 0..N-1 (default 3; --quick 1)")
+    ap.add_argument("--seeds", type=int, help="number of training seeds, run as 0..N-1 (default 3; --quick 1)")
     ap.add_argument("--iterations", "--steps", type=int, help="training steps per run (default 3000; --quick 400)")
     ap.add_argument("--event-weights", type=float, nargs="+",
                     help="sweep omega: one blur+event variant per value, in units of 1/625 (e.g. 1 2 4 8 16; "
@@ -224,9 +224,9 @@ def main(argv=None) -> int:
                     help="variants to run (default: all four)")
     ap.add_argument("--cache", type=Path, default=ROOT / "tools/results/fidelity_cache",
                     help="datasets and run folders (default %(default)s)")
-    ap.add_argument("--json", type=Path, help="default tools/results/bench_fidelity[_quick].json")
-    ap.add_argument("--plot", type=Path, help="default tools/results/bench_fidelity[_quick].png")
-    ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--json", type=Path, help="summary JSON (default tools/results/bench_fidelity[_quick].json)")
+    ap.add_argument("--plot", type=Path, help="PSNR bar plot (default tools/results/bench_fidelity[_quick].png)")
+    ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
     preset = QUICK if a.quick else FULL
     if a.event_weights and any(not (w >= 0) for w in a.event_weights):
