@@ -11,11 +11,19 @@ seed, so the seeds measure the trainer's variance. Training runs in-process, one
 (TrainConfig defaults apart from iterations, init_points and seed: blur space, event log domain and count
 convention come from the scene file). Writes JSON (every run's metrics.json plus the summary) and a plot
 (PSNR per variant per scene, error bars = std over seeds) into tools/results/, and prints the table.
-Runs are resumable: a run folder with a metrics.json from the same settings is not trained again.
+Runs are resumable: a run folder with a metrics.json from the same settings and the same trainer code (a hash
+of ev3dgs/train and ev3dgs/splat) is not trained again.
+
+Event-weight sweep (issue 13 item 5): ``--event-weights 1 2 4 8 16`` replaces the blur+event variant by one
+blur+event variant per omega = k / 625 (named ``blur+event@k``), e.g.
+
+    python tools/bench_fidelity.py --quick --scenes lego ficus --seeds 2 --variants blur-only blur+event \
+        --event-weights 1 2 4 8 16 --json tools/results/bench_event_weight.json
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -42,6 +50,31 @@ QUICK = dict(scenes=["lego"], seeds=1, iterations=400, render=dict(width=96, hei
 VIEWS = ("blur_view", "novel_view")
 
 
+OMEGA_UNIT = 1.0 / 625.0  # --event-weights are in units of the trainer's default omega (Ev3DGS's 1/625)
+
+
+def code_hash() -> str:
+    """sha256 (first 16 hex) of the trainer's and renderer's sources: cached runs made by other code are redone."""
+    h = hashlib.sha256()
+    for sub in ("ev3dgs/train", "ev3dgs/splat"):
+        for f in sorted((ROOT / sub).rglob("*.py")):
+            h.update(str(f.relative_to(ROOT)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def make_variants(names: list[str], event_weights: list[float] | None) -> dict[str, dict]:
+    """{variant name: TrainConfig overrides}; with ``event_weights`` blur+event becomes one variant per weight."""
+    out = {}
+    for n in names:
+        if n == "blur+event" and event_weights:
+            for k in event_weights:
+                out[f"blur+event@{k:g}"] = dict(event_weight=k * OMEGA_UNIT)
+        else:
+            out[n] = VARIANTS[n]
+    return out
+
+
 def build_scene(name: str, render: dict, cache: Path, quiet: bool) -> Path:
     spec = load_scene(name)
     r = resolve_render(spec, **render)
@@ -54,24 +87,27 @@ def build_scene(name: str, render: dict, cache: Path, quiet: bool) -> Path:
     return path
 
 
-def run_one(scene: Path, variant: str, seed: int, iterations: int, init_points: int, out: Path) -> dict:
+def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_points: int, out: Path) -> dict:
     cfg = TrainConfig(scene=str(scene), iterations=iterations, init_points=init_points, seed=seed,
-                      checkpoint_every=max(iterations, 1), **VARIANTS[variant])
+                      checkpoint_every=max(iterations, 1), **overrides)
     done = out / "metrics.json"
+    code = code_hash()
     if done.exists() and (out / "config.json").exists():
         old = TrainConfig.load(out / "config.json")
-        if not old.differences(cfg, ignore=("checkpoint_every", "threads")):
-            return json.loads(done.read_text())
+        cached = json.loads(done.read_text())
+        if not old.differences(cfg, ignore=("checkpoint_every", "threads")) and cached.get("code") == code:
+            return cached
     t = time.perf_counter()
     Trainer(cfg, out, quiet=True).fit()
     seconds = time.perf_counter() - t
     m = evaluate(out, write_images=False)
     m["train_seconds"] = seconds
+    m["code"] = code
     done.write_text(json.dumps(m, indent=2))
     return m
 
 
-def summarise(runs: list[dict]) -> dict:
+def summarise(runs: list[dict], variants=VARIANTS) -> dict:
     """{scene: {variant: {view: {"psnr": [mean, std], "ssim": [mean, std], "seeds": n}}}} plus "average"
     over scenes (mean of the per-scene means; std = std over seeds of the scene-averaged value)."""
     table: dict = {}
@@ -92,7 +128,7 @@ def summarise(runs: list[dict]) -> dict:
                     out[scene][variant][view]["seeds"] = len(v)
     scenes = list(table)
     avg: dict = {}
-    for variant in VARIANTS:
+    for variant in variants:
         for view in VIEWS:
             for k in ("psnr", "ssim"):
                 per_seed = {}
@@ -127,11 +163,12 @@ def targets(avg: dict) -> dict:
     return res
 
 
-def format_table(summary: dict) -> str:
-    rows = [f"{'scene':10s} {'variant':11s} {'blur PSNR':>14s} {'blur SSIM':>9s} {'novel PSNR':>14s} {'novel SSIM':>10s}"]
-    for scene, variants in summary.items():
-        for variant in VARIANTS:
-            c = variants.get(variant)
+def format_table(summary: dict, variants=VARIANTS) -> str:
+    rows = [f"{'scene':10s} {'variant':14s} {'blur PSNR':>14s} {'blur SSIM':>9s} {'novel PSNR':>14s} {'novel SSIM':>10s}"]
+    names = list(variants)
+    for scene, by_variant in summary.items():
+        for variant in names:
+            c = by_variant.get(variant)
             if not c:
                 continue
             cols = []
@@ -139,11 +176,11 @@ def format_table(summary: dict) -> str:
                 p, s = c.get(view, {}).get("psnr"), c.get(view, {}).get("ssim")
                 cols.append(f"{p[0]:7.2f} ± {p[1]:4.2f}" if p else f"{'-':>14s}")
                 cols.append(f"{s[0]:9.4f}" if s else f"{'-':>9s}")
-            rows.append(f"{scene:10s} {variant:11s} {cols[0]:>14s} {cols[1]:>9s} {cols[2]:>14s} {cols[3]:>10s}")
+            rows.append(f"{scene:10s} {variant:14s} {cols[0]:>14s} {cols[1]:>9s} {cols[2]:>14s} {cols[3]:>10s}")
     return "\n".join(rows)
 
 
-def plot(summary: dict, png: Path) -> None:
+def plot(summary: dict, png: Path, variants=VARIANTS) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -151,14 +188,14 @@ def plot(summary: dict, png: Path) -> None:
 
     scenes = list(summary)
     fig, axes = plt.subplots(1, 2, figsize=(max(6, 2.2 * len(scenes) + 2), 3.4), sharey=False)
-    width = 0.8 / len(VARIANTS)
+    width = 0.8 / len(variants)
     for ax, view in zip(axes, VIEWS):
-        for i, variant in enumerate(VARIANTS):
+        for i, variant in enumerate(variants):
             xs, ys, es = [], [], []
             for j, s in enumerate(scenes):
                 p = summary[s].get(variant, {}).get(view, {}).get("psnr")
                 if p:
-                    xs.append(j + (i - (len(VARIANTS) - 1) / 2) * width)
+                    xs.append(j + (i - (len(variants) - 1) / 2) * width)
                     ys.append(p[0])
                     es.append(p[1])
             ax.bar(xs, ys, width, yerr=es, capsize=2, label=variant)
@@ -175,19 +212,28 @@ def plot(summary: dict, png: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="lego, one seed, small size (<= 10 minutes on 2 cores)")
+    ap.add_argument("--quick", action="store_true", help="lego, one seed, 96x72, 400 steps (<= 10 minutes on 2 cores; default: off, the full 4-scene table)")
     ap.add_argument("--scenes", nargs="+", help="built-in scene names (default: all built-in scenes)")
-    ap.add_argument("--seeds", type=int, help="training seeds 0..N-1 (default 3; --quick 1)")
-    ap.add_argument("--iterations", type=int, help="training steps per run (default 3000; --quick 400)")
+    ap.add_argument("--seeds", type=int, help="number of training seeds, run as 0..N-1 (default 3; --quick 1)")
+    ap.add_argument("--iterations", "--steps", type=int, help="training steps per run (default 3000; --quick 400)")
+    ap.add_argument("--event-weights", type=float, nargs="+",
+                    help="sweep omega: one blur+event variant per value, in units of 1/625 (e.g. 1 2 4 8 16; "
+                         "default: none, blur+event at the trainer's default omega)")
     ap.add_argument("--init-points", type=int, default=5000, help="random initial Gaussians (default %(default)s)")
-    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
+    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
+                    help="variants to run (default: all four)")
     ap.add_argument("--cache", type=Path, default=ROOT / "tools/results/fidelity_cache",
                     help="datasets and run folders (default %(default)s)")
-    ap.add_argument("--json", type=Path, help="default tools/results/bench_fidelity[_quick].json")
-    ap.add_argument("--plot", type=Path, help="default tools/results/bench_fidelity[_quick].png")
-    ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--json", type=Path, help="summary JSON (default tools/results/bench_fidelity[_quick].json)")
+    ap.add_argument("--plot", type=Path, help="PSNR bar plot (default tools/results/bench_fidelity[_quick].png)")
+    ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
     preset = QUICK if a.quick else FULL
+    if a.event_weights and any(not (w >= 0) for w in a.event_weights):
+        ap.error("--event-weights must be >= 0")
+    if a.event_weights and "blur+event" not in a.variants:
+        ap.error("--event-weights needs the blur+event variant")
+    variants = make_variants(a.variants, a.event_weights)
     scenes = a.scenes or preset["scenes"] or builtin_scenes()
     seeds = a.seeds or preset["seeds"]
     iterations = a.iterations or preset["iterations"]
@@ -200,19 +246,20 @@ def main(argv=None) -> int:
     for name in scenes:
         path = build_scene(name, preset["render"], a.cache, a.quiet)
         for seed in range(seeds):
-            for variant in a.variants:
-                out = a.cache / "runs" / f"{path.stem}" / f"{variant.replace('+', '_')}_s{seed}"
+            for variant, overrides in variants.items():
+                tag = variant.replace("+", "_").replace("@", "_w")
+                out = a.cache / "runs" / f"{path.stem}" / f"{tag}_s{seed}"
                 t = time.perf_counter()
-                m = run_one(path, variant, seed, iterations, a.init_points, out)
+                m = run_one(path, overrides, seed, iterations, a.init_points, out)
                 runs.append({"scene": name, "variant": variant, "seed": seed, "metrics": m})
                 if not a.quiet:
                     bv, nv = m.get("blur_view", {}).get("psnr"), m.get("novel_view", {}).get("psnr")
-                    print(f"  {name} {variant:10s} seed {seed}: blur view {bv:.2f} dB, novel view {nv:.2f} dB "
+                    print(f"  {name} {variant:14s} seed {seed}: blur view {bv:.2f} dB, novel view {nv:.2f} dB "
                           f"({time.perf_counter() - t:.0f} s)", flush=True)
-    summary = summarise(runs)
+    summary = summarise(runs, variants)
     result = {"settings": {"quick": a.quick, "scenes": scenes, "seeds": seeds, "iterations": iterations,
                            "init_points": a.init_points, "render": preset["render"], "dataset_seed": 0,
-                           "variants": a.variants, "variant_overrides": {k: VARIANTS[k] for k in a.variants}},
+                           "variants": list(variants), "variant_overrides": variants, "code": code_hash()},
               "summary": summary, "targets": targets(summary["average"]),
               "blurry_input": {r["scene"]: r["metrics"].get("blurry_input", {}).get("psnr") for r in runs},
               "runs": [{k: v for k, v in r.items() if k != "metrics"} |
@@ -221,8 +268,8 @@ def main(argv=None) -> int:
               "seconds": time.perf_counter() - t0}
     js.parent.mkdir(parents=True, exist_ok=True)
     js.write_text(json.dumps(result, indent=2))
-    plot({k: v for k, v in summary.items() if k != "average"}, png)
-    print(format_table(summary))
+    plot({k: v for k, v in summary.items() if k != "average"}, png, variants)
+    print(format_table(summary, variants))
     for k, v in result["targets"].items():
         print(f"{k}: {v}")
     print(f"done in {result['seconds']:.0f} s -> {js}, {png}")

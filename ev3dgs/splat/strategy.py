@@ -17,7 +17,32 @@ from torch import Tensor, nn
 
 from .model import LOG_SCALE_MAX, LOG_SCALE_MIN, GaussianModel
 
-__all__ = ["DefaultStrategy", "quat_to_rotmat"]
+__all__ = ["DefaultStrategy", "quat_to_rotmat", "scaled_schedule", "REFERENCE_STEPS"]
+
+# The DefaultStrategy step defaults (refine 500..15000 every 100, opacity reset every 3000) are inria 3DGS's for
+# a 30 000-step run; gsplat's trainer multiplies all four by steps / 30 000 (its --steps_scaler).
+REFERENCE_STEPS = 30_000
+# Floor on the refinement interval of a scaled schedule: the screen-gradient statistic is a mean over the
+# renders since the last refinement, and over fewer than ~10 views it is mostly the noise of one view.
+MIN_REFINE_EVERY = 10
+
+
+def scaled_schedule(iterations: int, reference: int = REFERENCE_STEPS,
+                    min_refine_every: int = MIN_REFINE_EVERY) -> dict[str, int]:
+    """The densification steps for a run of ``iterations`` steps: DefaultStrategy's defaults times
+    ``iterations / reference`` (rounded; so ``iterations == reference`` gives exactly the defaults), with
+    refine_every >= min(min_refine_every, 100) and reset_every >= refine_every. The oversized-Gaussian prune,
+    which starts after the first opacity reset, moves with reset_every. E.g. 600 steps: refine from step 10
+    to 300 every 10, opacity reset at 60, 120, 180, 240."""
+    if iterations < 1 or reference < 1:
+        raise ValueError(f"iterations and reference must be >= 1, got {iterations}, {reference}")
+    d = DefaultStrategy
+    f = iterations / reference
+    every = max(min(min_refine_every, d.refine_every), round(d.refine_every * f), 1)
+    return {"refine_start": max(1, round(d.refine_start * f)),
+            "refine_stop": max(2, round(d.refine_stop * f)),
+            "refine_every": every,
+            "reset_every": max(every, round(d.reset_every * f))}
 
 ParamFn = Callable[[str, Tensor], Tensor]
 OptFn = Callable[[str, str, Tensor], Tensor]
@@ -166,6 +191,7 @@ class DefaultStrategy:
                 print(f"step {step}: cloned {n_clone} split {n_split} pruned {n_prune} -> {len(model)}")
         if step > 0 and step % self.reset_every == 0:
             self.reset_opacity(model, optimizers)
+            out["reset"] = True
         return out
 
     # ------------------------------------------------------------- operations

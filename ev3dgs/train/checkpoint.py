@@ -31,7 +31,7 @@ def save_checkpoint(path: Path, trainer) -> None:
         "optimizers": {k: o.state_dict() for k, o in trainer.optimizers.items()},
         "strategy_state": {k: v.clone() for k, v in trainer.strategy_state.items()},
         "strategy_rng": None if strat_gen is None else strat_gen.get_state(),
-        "rng": trainer.generator.get_state(),
+        "rng": {"views": trainer.generator.get_state(), "pairs": trainer.pair_generator.get_state()},
         "view_queue": list(trainer.view_queue),
         "thresholds": {k: v.detach().clone() for k, v in trainer.thresholds.items()},
         "threshold_opt": None if trainer.threshold_opt is None else trainer.threshold_opt.state_dict(),
@@ -86,6 +86,10 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
     if payload is None:
         payload = read_checkpoint(path, trainer.device)
     check_compatible(path, payload, trainer.cfg, trainer.data)
+    rng = payload["rng"]
+    if not (isinstance(rng, dict) and set(rng) == {"views", "pairs"}):
+        raise InputError(f"{path}: the checkpoint has one shared random stream (made before the view order and "
+                         "event-pair draws were separated): it cannot be continued exactly; start the run again")
     try:
         trainer.model.load_state_dict(payload["model"])
         trainer.model.to(device=trainer.device)
@@ -98,7 +102,8 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
     if payload["strategy_rng"] is not None:
         trainer.strategy._generator()
         trainer.strategy._gen.set_state(payload["strategy_rng"])
-    trainer.generator.set_state(payload["rng"])
+    trainer.generator.set_state(rng["views"])
+    trainer.pair_generator.set_state(rng["pairs"])
     trainer.view_queue = list(payload["view_queue"])
     for k, v in payload["thresholds"].items():
         trainer.thresholds[k].data.copy_(v)

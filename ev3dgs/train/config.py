@@ -64,6 +64,7 @@ class TrainConfig:
         check(self.sh_interval >= 1, "sh interval must be >= 1")
         check(self.init_points >= 1, "--init-points must be >= 1")
         check(0 < self.init_opacity < 1, "init opacity must be in (0, 1)")
+        check(self.seed >= 0, "--seed must be >= 0")
         check(self.checkpoint_every >= 1, "--checkpoint-every must be >= 1")
         check(self.device in ("auto", "cpu", "cuda"), "--device must be auto, cpu or cuda")
         check(self.threads is None or self.threads >= 1, "--threads must be >= 1")

@@ -86,18 +86,23 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: float =
     return ssim_map.mean()
 
 
+def blur_average(renders: torch.Tensor, space: str = "srgb") -> torch.Tensor:
+    """(K, H, W, 3) sub-pose renders -> (H, W, 3) the blurry frame they make: the mean of the display values
+    (``space="srgb"``) or the mean in linear light, re-encoded (``space="linear"``)."""
+    if renders.ndim != 4:
+        raise ValueError(f"renders must be (K, H, W, 3), got {tuple(renders.shape)}")
+    if space == "srgb":
+        return renders.mean(dim=0)
+    if space == "linear":
+        return linear_to_srgb_torch(srgb_to_linear_torch(renders).mean(dim=0))
+    raise ValueError(f"space must be 'srgb' or 'linear', got {space!r}")
+
+
 def blur_loss(renders: torch.Tensor, target: torch.Tensor, lam: float = 0.2, space: str = "srgb") -> torch.Tensor:
     """(K, H, W, 3) sub-pose renders and the (H, W, 3) blurry sRGB frame -> (1-lam)*MSE + lam*(1-SSIM) of
     their average. ``space="srgb"`` averages display values; ``space="linear"`` averages in linear light
     (each render through the sRGB EOTF, mean, back to sRGB), which is how a real exposure integrates."""
-    if renders.ndim != 4:
-        raise ValueError(f"renders must be (K, H, W, 3), got {tuple(renders.shape)}")
-    if space == "srgb":
-        avg = renders.mean(dim=0)
-    elif space == "linear":
-        avg = linear_to_srgb_torch(srgb_to_linear_torch(renders).mean(dim=0))
-    else:
-        raise ValueError(f"space must be 'srgb' or 'linear', got {space!r}")
+    avg = blur_average(renders, space)
     target = target.to(avg.dtype)
     mse = torch.mean((avg - target) ** 2)
     return (1.0 - lam) * mse + lam * (1.0 - ssim(avg, target))

@@ -33,13 +33,15 @@ import torch
 from ..errors import ConfigError, Ev3dgsError
 from ..splat.model import GaussianModel
 from ..splat.rasterize import rasterization
-from ..splat.strategy import DefaultStrategy
+from ..splat.strategy import DefaultStrategy, scaled_schedule
 from .checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .data import TrainData, load_train_data
 from .events import pair_list, pose_counts
-from .losses import blur_loss, log_intensity, pose_event_loss
+from .init import init_bounds
+from .losses import blur_average, blur_loss, log_intensity, pose_event_loss
 from .metrics import psnr
+from .rng import stream_generator, stream_seed
 
 
 class TrainingError(Ev3dgsError):
@@ -78,12 +80,12 @@ def init_model(data: TrainData, cfg: TrainConfig, device) -> GaussianModel:
         return GaussianModel.from_points(data.points[0], data.points[1], sh_degree=cfg.sh_degree,
                                          init_opacity=cfg.init_opacity, device=device)
     bounds = data.bounds
-    if bounds is None:  # a cube around the point the cameras look at, a fifth of their distance wide
-        centre = data.camera_centres.mean(axis=0) * 0.0
-        half = 0.2 * float(np.linalg.norm(data.camera_centres - centre, axis=1).mean())
-        bounds = np.stack([centre - half, centre + half])
-    return GaussianModel.random_in_bounds(bounds, cfg.init_points, seed=cfg.seed, sh_degree=cfg.sh_degree,
-                                          init_opacity=cfg.init_opacity, device=device)
+    if bounds is None:  # a cube where the cameras look, as wide as their view there (train/init.py)
+        forwards = data.mid_viewmats[:, 2, :3].detach().cpu().double().numpy()  # w2c row 2: camera +z in world
+        bounds = init_bounds(data.camera_centres, forwards, data.K.detach().cpu().double().numpy(),
+                             data.width, data.height)
+    return GaussianModel.random_in_bounds(bounds, cfg.init_points, seed=stream_seed(cfg.seed, "init"),
+                                          sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity, device=device)
 
 
 class Trainer:
@@ -100,12 +102,12 @@ class Trainer:
         self.model = init_model(self.data, cfg, self.device)
         self.optimizers = self.model.make_optimizers(scene_scale=self.data.scene_scale)
         self.means_lr0 = self.optimizers["means"].param_groups[0]["lr"]
-        it = cfg.iterations
-        self.strategy = DefaultStrategy(
-            refine_start=min(500, max(1, it // 10)), refine_stop=max(2, it // 2), refine_every=100,
-            reset_every=3000, scene_scale=self.data.scene_scale, seed=cfg.seed)
+        # densification steps scaled with --iterations (gsplat-style; 30 000 steps = the 3DGS defaults)
+        self.strategy = DefaultStrategy(**scaled_schedule(cfg.iterations), scene_scale=self.data.scene_scale,
+                                        seed=stream_seed(cfg.seed, "densify"))
         self.strategy_state = self.strategy.initialize_state(len(self.model), device=self.device)
-        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.generator = stream_generator(cfg.seed, "views")       # view order
+        self.pair_generator = stream_generator(cfg.seed, "pairs")  # --event-pairs draws (train/rng.py)
         self.view_queue: list[int] = []
         self.thresholds = {
             "pos": torch.tensor(math.log(self.data.pos_threshold), device=self.device,
@@ -171,7 +173,7 @@ class Trainer:
         loss = l_blur
         l_event = torch.zeros((), device=self.device)
         if self.use_events:
-            pairs = pair_list(len(poses), cfg.event_pairs or "all", self.generator)
+            pairs = pair_list(len(poses), cfg.event_pairs or "all", self.pair_generator)
             log_l = log_intensity(stack, data.color_filter, data.log_knee, data.event_transfer, data.raw_matrix)
             l_event = pose_event_loss(log_l, pose_counts(data.bins[v]), pairs, self.thresholds["pos"].exp(),
                                       self.thresholds["neg"].exp(), data.count_convention)
@@ -190,15 +192,29 @@ class Trainer:
             refined = self.strategy.step_post_backward(self.model, self.optimizers, self.strategy_state,
                                                        self.step, infos)
         self.step += 1
-        with torch.no_grad():
-            p = psnr(stack.mean(0).clamp(0, 1), target)
-        return {"step": self.step, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
+        with torch.no_grad():  # the blurry frame as the loss sees it (averaged in data.blur_space)
+            p = psnr(blur_average(stack.detach(), data.blur_space).clamp(0, 1), target)
+        return {"step": self.step, "view": v, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
                 "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info}
+
+    def trained_parameters(self) -> list[torch.Tensor]:
+        """Every tensor a step updates: the Gaussians, the learned thresholds and whatever any optimizer of
+        the trainer holds (so parameters added later are covered by the NaN guard without listing them). The
+        pose corrections of --refine-poses are not listed: PoseRefiner.step skips a non-finite pose gradient
+        itself (counted as pose_skipped in log.jsonl) rather than stopping the run."""
+        out = {id(p): p for p in self.model.params.values()}
+        out.update({id(p): p for p in self.thresholds.values() if p.requires_grad})
+        opts = list(self.optimizers.values()) + [o for o in vars(self).values()
+                                                  if isinstance(o, torch.optim.Optimizer)]
+        for opt in opts:
+            for group in opt.param_groups:
+                out.update({id(p): p for p in group["params"]})
+        return list(out.values())
 
     def _guard(self, loss, l_blur, l_event) -> None:
         bad = not torch.isfinite(loss)
         if not bad:
-            bad = any(p.grad is not None and not torch.isfinite(p.grad).all() for p in self.model.params.values())
+            bad = any(p.grad is not None and not torch.isfinite(p.grad).all() for p in self.trained_parameters())
         if bad:
             ckpt = self.run_dir / "ckpt.pt"
             where = f"the last good checkpoint is {ckpt}" if ckpt.exists() else "no checkpoint was written yet"
