@@ -323,17 +323,19 @@ def _reduce(ids, per_pair, offsets, n_cameras, n):
     return out
 
 
-def _parallel(kernel, *args):
-    """Run a parallel kernel without letting numba change torch's intra-op thread count (see above), its
-    prange handed out one iteration at a time (chunk size 1: a free thread takes the next tile of the work
-    list, so one expensive tile does not hold a whole static block back; the results do not depend on which
-    thread ran a tile)."""
+def _parallel(kernel, *args, chunk: int = 0):
+    """Run a parallel kernel without letting numba change torch's intra-op thread count (see above).
+    ``chunk=1`` (the tile kernels): the prange is handed out one iteration at a time, so a free thread takes
+    the next tile of the work list and one expensive tile does not hold a whole static block back (the
+    results do not depend on which thread ran a tile). Not for kernels with whole-array operations outside
+    their prange (np.zeros, slices): numba turns those into parallel loops too, and chunk 1 hands those out
+    element by element (measured: _reduce 80x slower)."""
     threads = torch.get_num_threads()
-    chunk = numba.set_parallel_chunksize(1)
+    old = numba.set_parallel_chunksize(chunk)
     try:
         return kernel(*args)
     finally:
-        numba.set_parallel_chunksize(chunk)
+        numba.set_parallel_chunksize(old)
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
 
@@ -376,7 +378,7 @@ class _RasterizeCPU(torch.autograd.Function):
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
         _parallel(_forward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, image, t_final, last,
-                  _consts(col.dtype))
+                  _consts(col.dtype), chunk=1)
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
         ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last)
         ctx.size = (width, height, tiles_x)
@@ -394,7 +396,7 @@ class _RasterizeCPU(torch.autograd.Function):
               else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
         per_pair = np.zeros((len(ids), 6 + D), col.dtype)
         _parallel(_backward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
-                  gi, ga, per_pair, _consts(col.dtype))
+                  gi, ga, per_pair, _consts(col.dtype), chunk=1)
         g = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None
