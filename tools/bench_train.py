@@ -11,7 +11,7 @@ cpu backend) against the pixel count at 6k Gaussians and against the Gaussian co
 written to tools/results/bench_train_scaling.{json,png}.
 
 --speed: ms/step and PSNR of the blur+event variant side by side with another checkout (DIR, e.g. an old
-commit unpacked with `git archive`), alternating runs, one subprocess each (bench_train_speed.py); JSON only.
+commit unpacked with `git archive`), both checkouts' runs at the same time, one subprocess each (bench_train_speed.py); JSON only.
 """
 from __future__ import annotations
 
@@ -43,6 +43,8 @@ def main(argv=None) -> int:
     ap.add_argument("--against", help="--speed: the other checkout's root folder (its ev3dgs/ is imported)")
     ap.add_argument("--repeats", type=int, default=1, help="--speed: run pairs per thread count (default 1)")
     ap.add_argument("--seed", type=int, default=0, help="--speed: training seed (default 0)")
+    ap.add_argument("--one-at-a-time", action="store_true",
+                    help="--speed: run the two checkouts one after the other, not at the same time (default: off)")
     args = ap.parse_args(argv)
     if args.scaling:
         from bench_train_scaling import run_scaling
@@ -54,7 +56,8 @@ def main(argv=None) -> int:
 
         if not args.against or not args.scene:
             ap.error("--speed needs --against DIR and --scene S.h5")
-        out = run_speed(args.scene, args.against, args.iterations, args.threads or [1], args.seed, args.repeats)
+        out = run_speed(args.scene, args.against, args.iterations, args.threads or [1], args.seed, args.repeats,
+                        concurrent=not args.one_at_a_time)
         save_json(args.json if args.json != ap.get_default("json") else "tools/results/bench_train_speed.json", out)
         return 0
     with tempfile.TemporaryDirectory() as d:
