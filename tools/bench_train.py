@@ -11,7 +11,8 @@ cpu backend) against the pixel count at 6k Gaussians and against the Gaussian co
 written to tools/results/bench_train_scaling.{json,png}.
 
 --speed: ms/step and PSNR of the blur+event variant side by side with another checkout (DIR, e.g. an old
-commit unpacked with `git archive`), both checkouts' runs at the same time, one subprocess each (bench_train_speed.py); JSON only.
+commit unpacked with `git archive`), both checkouts' runs at the same time, one subprocess each
+(bench_train_speed.py); JSON only.
 """
 from __future__ import annotations
 
