@@ -359,3 +359,45 @@ def test_opacity_reset():
     assert low < strat.prune_opa and len(m) == 5  # the refine at step 3000 pruned row 2
     _adam_warmup(m, opts)
     _check_consistent(m, opts, st)
+
+
+def _textbook_adam(p0: torch.Tensor, grads, lr: float, eps: float, b1: float = 0.9, b2: float = 0.999):
+    """Kingma & Ba's Adam with bias correction, in float64: the independent oracle for make_optimizers."""
+    p, m, v = p0.double().clone(), torch.zeros_like(p0, dtype=torch.float64), torch.zeros_like(p0, dtype=torch.float64)
+    for t, g in enumerate(grads, 1):
+        g = g.double()
+        m = b1 * m + (1 - b1) * g
+        v = b2 * v + (1 - b2) * g * g
+        p = p - lr * (m / (1 - b1 ** t)) / (torch.sqrt(v / (1 - b2 ** t)) + eps)
+    return p
+
+
+def _run_adam(threads: int):
+    m = _six_gaussians()
+    opts = m.make_optimizers(scene_scale=2.0)
+    g = torch.Generator().manual_seed(3)
+    grads = {n: [torch.randn(p.shape, generator=g) * 10.0 ** (k - 2) for k in range(5)] for n, p in m.params.items()}
+    start = {n: p.detach().clone() for n, p in m.params.items()}
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for k in range(5):
+            for n, p in m.params.items():
+                p.grad = grads[n][k].clone()
+                opts[n].step()
+                opts[n].zero_grad(set_to_none=True)
+    finally:
+        torch.set_num_threads(old)
+    return m, opts, start, grads
+
+
+def test_make_optimizers_is_adam_and_thread_count_independent():
+    m1, opts, start, grads = _run_adam(1)
+    m2, _, _, _ = _run_adam(2)
+    for n, p in m1.params.items():
+        lr = opts[n].param_groups[0]["lr"]
+        want = _textbook_adam(start[n], grads[n], lr, eps=1e-15)
+        # float32 state and update: each step's update lr * m_hat / sqrt(v_hat) (|.| <= ~3 lr here) carries a
+        # few float32 roundings (2^-24 relative); 5 steps, plus the rounding of p itself (values ~1)
+        torch.testing.assert_close(p.detach().double(), want, rtol=1e-6, atol=5 * 8 * lr * 2.0 ** -24 + 1e-7)
+        assert torch.equal(p, m2.params[n]), n  # element-wise kernel: bitwise the same on 1 and 2 threads

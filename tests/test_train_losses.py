@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 
 from ev3dgs.logmap import DEFAULT_LOG_KNEE, safe_log_torch
 from ev3dgs.sensor import LUMINANCE_WEIGHTS, cfa_channels
-from ev3dgs.train.events import bin_signed_events, pair_list, pair_targets, sub_pose_times
-from ev3dgs.train.losses import (blur_loss, event_loss, linear_to_srgb_torch, log_intensity,
+from ev3dgs.train.events import bin_signed_events, pair_list, pair_targets, pose_counts, sub_pose_times
+from ev3dgs.train.losses import (blur_loss, linear_to_srgb_torch, log_intensity, pose_event_loss,
                                  srgb_to_linear_torch, ssim)
 from ev3dgs.train.metrics import lpips_unavailable_reason, psnr, ssim_metric
 
@@ -132,13 +132,29 @@ def _renders(value, k=3, h=4, w=4):
     return torch.full((k, h, w, 3), float(value), requires_grad=True)
 
 
+def event_loss(log_l, pair_counts, pairs, tp, tn):
+    """The one-pair form the tests below state their expectations in: the loss of pair (0, 1) with
+    ``pair_counts`` (1, 2, H, W) ON/OFF or (1, H, W) net (n > 0: n ON events, n < 0: |n| OFF) events
+    between the two poses, through the trainer's pose_event_loss (cumulative counts: pose 0 has none)."""
+    assert list(pairs) == [(0, 1)] and log_l.shape[0] == 2
+    c = pair_counts.float()
+    if c.ndim == 3:
+        c = torch.stack([c.clamp(min=0), (-c).clamp(min=0)], dim=1)
+    return pose_event_loss(log_l, torch.cat([torch.zeros_like(c), c]), pairs, tp, tn)
+
+
+def _random_pose_counts(k, h, w, high, generator=None):
+    """Cumulative ON/OFF counts (k, 2, h, w) from random per-interval counts in [0, high)."""
+    return pose_counts(torch.randint(0, high, (k - 1, 2, h, w), generator=generator).float())
+
+
 @pytest.mark.parametrize("value", [0.0, 1.0])
 @pytest.mark.parametrize("cf", ["none", "RGGB"])
 def test_event_loss_finite_at_black_and_white(value, cf):
     r = _renders(value)
     pairs = pair_list(3)
-    targets = torch.ones(len(pairs), 4, 4)
-    loss = event_loss(log_intensity(r, cf), targets, pairs, 0.2, 0.3)
+    counts = pose_counts(torch.ones(2, 2, 4, 4))
+    loss = pose_event_loss(log_intensity(r, cf), counts, pairs, 0.2, 0.3)
     assert torch.isfinite(loss) and loss >= 0
     loss.backward()
     assert torch.isfinite(r.grad).all()
@@ -188,8 +204,7 @@ def test_event_loss_learnable_thresholds_get_finite_gradients():
     tp = torch.tensor(0.2, requires_grad=True)
     tn = torch.tensor(0.3, requires_grad=True)
     pairs = pair_list(4)
-    targets = torch.randint(-3, 4, (len(pairs), 5, 5)).float()
-    loss = event_loss(log_intensity(r), targets, pairs, tp, tn)
+    loss = pose_event_loss(log_intensity(r), _random_pose_counts(4, 5, 5, 4), pairs, tp, tn)
     loss.backward()
     for g in (tp.grad, tn.grad, r.grad):
         assert g is not None and torch.isfinite(g).all()
@@ -228,8 +243,7 @@ def test_event_loss_nonnegative_finite_property(seed, tp, tn, k, extreme):
         r[-1] = 1.0
     r.requires_grad_(True)
     pairs = pair_list(k)
-    targets = torch.randint(-20, 21, (len(pairs), 3, 4), generator=g).float()
-    loss = event_loss(log_intensity(r), targets, pairs, tp, tn)
+    loss = pose_event_loss(log_intensity(r), _random_pose_counts(k, 3, 4, 21, g), pairs, tp, tn)
     assert torch.isfinite(loss) and float(loss.detach()) >= 0.0
     loss.backward()
     assert torch.isfinite(r.grad).all()

@@ -3,11 +3,16 @@ naive, blur-only and blur+event on the --quick lego scene of `make demo`. JSON +
 
     python tools/bench_train.py [--scene demo_out/lego.h5] [--iterations 1500] [--eval-every 250]
     python tools/bench_train.py --scaling [--threads 1] [--quick]
+    python tools/bench_train.py --speed --against DIR --scene S.h5 [--iterations 500] [--threads 1 2]
 
 --scaling: how the cost of one blur+event step grows with the data (synthetic, no scene file needed): ms per
 step (5 sub-poses, all 10 event pairs, SH degree 3, forward + backward + Adam, the trainer's step on the
 cpu backend) against the pixel count at 6k Gaussians and against the Gaussian count at 96x72, log-log,
 written to tools/results/bench_train_scaling.{json,png}.
+
+--speed: ms/step and PSNR of the blur+event variant side by side with another checkout (DIR, e.g. an old
+commit unpacked with `git archive`), both checkouts' runs at the same time, one subprocess each
+(bench_train_speed.py); JSON only.
 """
 from __future__ import annotations
 
@@ -29,24 +34,41 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", help="scene .h5 (default: make the demo's quick lego scene)")
     ap.add_argument("--iterations", type=int, default=1500)
     ap.add_argument("--eval-every", type=int, default=250)
-    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--threads", type=int, nargs="+", default=None,
+                    help="torch/numba threads (default: torch's; --speed: 1); --speed takes several")
     ap.add_argument("--json", default="tools/results/bench_train.json")
     ap.add_argument("--plot", default="tools/results/bench_train.png")
     ap.add_argument("--scaling", action="store_true", help="ms/step against pixels and Gaussians (synthetic)")
     ap.add_argument("--quick", action="store_true", help="with --scaling: fewer, smaller points")
+    ap.add_argument("--speed", action="store_true", help="side by side with --against (default: off)")
+    ap.add_argument("--against", help="--speed: the other checkout's root folder (its ev3dgs/ is imported)")
+    ap.add_argument("--repeats", type=int, default=1, help="--speed: run pairs per thread count (default 1)")
+    ap.add_argument("--seed", type=int, default=0, help="--speed: training seed (default 0)")
+    ap.add_argument("--one-at-a-time", action="store_true",
+                    help="--speed: run the two checkouts one after the other, not at the same time (default: off)")
     args = ap.parse_args(argv)
     if args.scaling:
         from bench_train_scaling import run_scaling
 
-        return run_scaling(args.threads or 1, args.quick, "tools/results/bench_train_scaling.json",
-                           "tools/results/bench_train_scaling.png")
+        return run_scaling(args.threads[0] if args.threads else 1, args.quick,
+                           "tools/results/bench_train_scaling.json", "tools/results/bench_train_scaling.png")
+    if args.speed:
+        from bench_train_speed import run_speed
+
+        if not args.against or not args.scene:
+            ap.error("--speed needs --against DIR and --scene S.h5")
+        out = run_speed(args.scene, args.against, args.iterations, args.threads or [1], args.seed, args.repeats,
+                        concurrent=not args.one_at_a_time)
+        save_json(args.json if args.json != ap.get_default("json") else "tools/results/bench_train_speed.json", out)
+        return 0
     with tempfile.TemporaryDirectory() as d:
         scene = args.scene
         if scene is None:
             from ev3dgs.demo import DEMO_RENDER, make_scene
 
             scene = str(make_scene(Path(d) / "scene", quiet=True, **DEMO_RENDER))
-        base = TrainConfig(scene=scene, iterations=args.iterations, init_points=5000, threads=args.threads)
+        base = TrainConfig(scene=scene, iterations=args.iterations, init_points=5000,
+                           threads=args.threads[0] if args.threads else None)
         results = compare_variants(scene, Path(d) / "runs", base, eval_every=args.eval_every)
     print(summary_table(results))
     out = {"iterations": args.iterations,

@@ -1,9 +1,9 @@
 """ms per blur+event training step against pixels and against Gaussians (log-log): `bench_train.py --scaling`.
 
 The step is the trainer's on the cpu backend, on synthetic data: a random cloud (GaussianModel.random_in_bounds
-in a unit cube, SH degree 3 all active), 5 sub-poses 1 degree apart, a random blurry target and random signed
-event counts for all 10 pairs; blur loss + event loss, backward, one Adam step per parameter, under the
-trainer's `reproducible()` (torch on one thread; the numba kernels on `threads`)."""
+in a unit cube, SH degree 3 all active), 5 sub-poses 1 degree apart, a random blurry target and random ON/OFF
+event counts between the sub-poses, all 10 pairs; blur loss + the trainer's pose_event_loss, backward, one Adam
+step per parameter, under the trainer's `reproducible()` (torch on one thread; the numba kernels on `threads`)."""
 from __future__ import annotations
 
 import math
@@ -15,8 +15,8 @@ import torch
 
 from ev3dgs.splat.model import GaussianModel
 from ev3dgs.splat.rasterize import rasterization
-from ev3dgs.train.events import pair_list
-from ev3dgs.train.losses import blur_loss, event_loss, log_intensity
+from ev3dgs.train.events import pair_list, pose_counts
+from ev3dgs.train.losses import blur_loss, log_intensity, pose_event_loss
 from ev3dgs.train.trainer import reproducible
 from pareto import save_json
 
@@ -44,14 +44,14 @@ def step_ms(n: int, width: int, height: int, threads: int, repeats: int = 5) -> 
     g = torch.Generator().manual_seed(0)
     target = torch.rand(height, width, 3, generator=g)
     pairs = pair_list(SUBPOSES, "all", g)
-    counts = torch.randint(-2, 3, (len(pairs), height, width), generator=g).float()
+    counts = pose_counts(torch.randint(0, 3, (SUBPOSES - 1, 2, height, width), generator=g).float())
 
     def step():
         with reproducible():
             stack, _, _ = rasterization(model.means, model.quats_normalised, model.scales, model.opacities,
                                         model.sh, vms, K, width, height, sh_degree=3, backend="cpu",
                                         threads=threads)
-            loss = blur_loss(stack, target) + event_loss(log_intensity(stack), counts, pairs, 0.2, 0.2) / 625
+            loss = blur_loss(stack, target) + pose_event_loss(log_intensity(stack), counts, pairs, 0.2, 0.2) / 625
             loss.backward()
             for opt in opts.values():
                 opt.step()

@@ -3,11 +3,14 @@
 Same semantics and constants as `reference` (front-to-back, alpha = min(0.99, o*exp(-sigma)), skip
 sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4), but:
 
-* binning: Gaussians are depth-sorted once, then counted and placed per 16x16 tile (a counting sort), so
-  every tile's list is already in depth order. Nothing is dropped: a Gaussian goes to every tile its
-  (opacity-aware, exact) radius touches, so the per-tile lists hold every Gaussian that can reach a pixel.
+* binning (one numba call, cameras in parallel): per camera the Gaussians are depth-sorted once, then
+  counted and placed per 16x16 tile (a counting sort), so every tile's list is already in depth order.
+  Nothing is dropped: a Gaussian goes to every tile its (opacity-aware, exact) radius touches, so the
+  per-tile lists hold every Gaussian that can reach a pixel.
 * forward: per tile, Gaussians outer and the tile's pixels inner; per pixel it keeps T and the index after
-  the last Gaussian it composited. Tiles run in parallel (numba prange) when threads > 1.
+  the last Gaussian it composited. Per row of a Gaussian's box only the pixels inside its cut-off ellipse
+  (sigma <= ln(255 o), solved per row, conservatively) are visited: about half of the box. Tiles run in
+  parallel (numba prange, handed out one at a time, most expensive first) when threads > 1.
 * backward: per tile, Gaussians in reverse depth order; T is recovered by dividing by (1 - alpha) >= 0.01,
   the colour behind each Gaussian is accumulated, and gradients go to a per-(tile, Gaussian) buffer that a
   serial pass sums per Gaussian. No atomics, and the result does not depend on the thread count.
@@ -43,6 +46,46 @@ def _box(mx, my, r, xmin, ymin, xmax, ymax):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _span_params(a, b, c, smax):
+    """Per Gaussian, for _row_span: (ok, det, s) in float64. ``s`` is the kernel's cut-off sigma ``smax``
+    raised by more than the rounding error of the kernel's sigma (so every pixel the kernel's exact test can
+    accept lies inside the span): sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is evaluated in 4 roundings of
+    relative size u <= 2^-24 (float32), each relative to a term, and the terms' absolute sum is at most
+    (1 + rho) / (1 - rho) times sigma for the positive-definite form (rho = |b| / sqrt(ac) < 1), so an
+    inflation of 1e-6 * (1 + rho) / (1 - rho) (> 16 u) relative, plus 1e-9 absolute, covers it. Not
+    positive definite (ok False): no span, the caller keeps the whole box row (the kernel skips sigma < 0)."""
+    a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
+    det = a64 * c64 - b64 * b64
+    if not (a64 > 0.0 and det > 0.0):
+        return False, det, 0.0
+    rho = min(abs(b64) / np.sqrt(a64 * c64), 1.0 - 1e-12)
+    s = np.float64(smax) * (1.0 + 1e-6 * (1.0 + rho) / (1.0 - rho)) + 1e-9
+    return True, det, s
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_span(ok, a, b, det, s, mx, dy, bx0, bx1):
+    """The pixels [x0, x1] of one row (offset dy = y - my) where sigma <= s, clipped to the box [bx0, bx1]:
+    sigma is a convex quadratic in dx, 0.5 a dx^2 + b dy dx + 0.5 c dy^2 <= s solves to
+    dx in (-b dy -+ sqrt(2 a s - det dy^2)) / a. The span is widened by 1e-6 px against the float64
+    rounding of this solve (relative 1e-15 of coordinates < 2^24), so it never loses a pixel the exact
+    test accepts; it only skips pixels whose sigma exceeds the cut-off (the ellipse is ~pi/4 of its box,
+    far less for thin Gaussians)."""
+    if not ok:
+        return bx0, bx1
+    dy64 = np.float64(dy)
+    disc = 2.0 * np.float64(a) * s - det * dy64 * dy64
+    if disc < 0.0:
+        return 1, 0
+    root = np.sqrt(disc)
+    a64 = np.float64(a)
+    centre = np.float64(mx) - np.float64(b) * dy64 / a64
+    lo = centre - root / a64 - 1e-6
+    hi = centre + root / a64 + 1e-6
+    return max(bx0, int(np.ceil(lo))), min(bx1, int(np.floor(hi)))
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _tile(tile, tiles_x, width, height, like):
     """Origin, size and pixel-centre coordinates (in like's dtype, so float32 maths stays float32) of a tile."""
     x0, y0 = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
@@ -56,42 +99,59 @@ def _tile(tile, tiles_x, width, height, like):
     return x0, y0, w, h, xs, ys
 
 
-@njit(cache=True, nogil=True)
-def _bin(means2d, radii, order, width, height, tiles_x, tiles_y):
-    """Counting sort of (tile, Gaussian) pairs; `order` is the depth order of the Gaussians.
-    Returns (offsets (n_tiles+1,), ids (M,)): tile t's Gaussians, front to back, are ids[offsets[t]:offsets[t+1]]."""
-    n_tiles = tiles_x * tiles_y
-    counts = np.zeros(n_tiles + 1, np.int64)
-    rects = np.empty((order.shape[0], 4), np.int64)
-    for j in range(order.shape[0]):
-        g = order[j]
-        x0, x1, y0, y1 = _box(means2d[g, 0], means2d[g, 1], radii[g], 0, 0, width - 1, height - 1)
-        if x0 > x1 or y0 > y1:
-            rects[j, 0] = 1
-            rects[j, 1] = 0
-            continue
-        tx0, tx1, ty0, ty1 = x0 // TILE, x1 // TILE, y0 // TILE, y1 // TILE
-        rects[j, 0], rects[j, 1], rects[j, 2], rects[j, 3] = tx0, tx1, ty0, ty1
-        for ty in range(ty0, ty1 + 1):
-            for tx in range(tx0, tx1 + 1):
-                counts[ty * tiles_x + tx + 1] += 1
-    for t in range(n_tiles):
-        counts[t + 1] += counts[t]
-    ids = np.empty(counts[n_tiles], np.int64)
-    fill = counts[:n_tiles].copy()
-    for j in range(order.shape[0]):
-        if rects[j, 0] > rects[j, 1]:
-            continue
-        for ty in range(rects[j, 2], rects[j, 3] + 1):
-            for tx in range(rects[j, 0], rects[j, 1] + 1):
-                t = ty * tiles_x + tx
-                ids[fill[t]] = order[j]
-                fill[t] += 1
-    return counts, ids
+@njit(cache=True, nogil=True, inline="always")
+def _tile_rect(mx, my, r, width, height):
+    """Tile rectangle (tx0, tx1, ty0, ty1) a Gaussian's radius box touches; tx0 > tx1 when off-image."""
+    x0, x1, y0, y1 = _box(mx, my, r, 0, 0, width - 1, height - 1)
+    if x0 > x1 or y0 > y1:
+        return 1, 0, 0, 0
+    return x0 // TILE, x1 // TILE, y0 // TILE, y1 // TILE
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, background, width, height,
+def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
+    """Counting sort of (camera, tile, Gaussian) triples, all cameras at once (cameras in parallel: each
+    writes its own rows and its own slice of ids). Per camera the visible Gaussians (radius > 0) are put
+    in depth order by a stable sort (ties by index), then counted and placed per tile, so every tile's
+    list is in depth order. Returns (offsets (C * n_tiles + 1,), ids): camera c's tile t (global tile
+    c * n_tiles + t) holds ids[offsets[g]:offsets[g + 1]], front to back."""
+    C, N = radii.shape
+    n_tiles = tiles_x * tiles_y
+    counts = np.zeros((C, n_tiles + 1), np.int64)
+    orders = np.empty((C, N), np.int64)
+    n_vis = np.zeros(C, np.int64)
+    for c in prange(C):
+        vis = np.flatnonzero(radii[c] > 0)
+        order = vis[np.argsort(depths[c][vis], kind="mergesort")]
+        n_vis[c] = order.shape[0]
+        for j in range(order.shape[0]):
+            g = order[j]
+            orders[c, j] = g
+            tx0, tx1, ty0, ty1 = _tile_rect(means2d[c, g, 0], means2d[c, g, 1], radii[c, g], width, height)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    counts[c, ty * tiles_x + tx + 1] += 1
+    offsets = np.empty(C * n_tiles + 1, np.int64)
+    offsets[0] = 0
+    for c in range(C):  # serial prefix sum over (camera, tile)
+        for t in range(n_tiles):
+            offsets[c * n_tiles + t + 1] = offsets[c * n_tiles + t] + counts[c, t + 1]
+    ids = np.empty(offsets[C * n_tiles], np.int64)
+    for c in prange(C):
+        fill = offsets[c * n_tiles:(c + 1) * n_tiles].copy()
+        for j in range(n_vis[c]):
+            g = orders[c, j]
+            tx0, tx1, ty0, ty1 = _tile_rect(means2d[c, g, 0], means2d[c, g, 1], radii[c, g], width, height)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    t = ty * tiles_x + tx
+                    ids[fill[t]] = g
+                    fill[t] += 1
+    return offsets, ids
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
              tiles_x, image, t_final, last, consts):
     """All cameras at once: means2d (C,N,2), conics (C,N,3), colors (C,N,D), radii (C,N); global tile
     c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W)."""
@@ -100,7 +160,8 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
     # float32 (numba would promote to float64 on any Python float literal)
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
     n_tiles = tiles_x * (-(-height // TILE))
-    for gt in prange(offsets.shape[0] - 1):
+    for i in prange(work.shape[0]):
+        gt = work[i]
         cam, tile = gt // n_tiles, gt % n_tiles
         x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, image)
         P = w * h
@@ -123,9 +184,11 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
                 col[d] = colors[cam, g, d]
             # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
             bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
+            ok, det, s = _span_params(a, b, c, smax)
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
-                for px in range(bx0, bx1 + 1):
+                rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
+                for px in range(rx0, rx1 + 1):
                     p = (py - y0) * w + (px - x0)
                     if done[p]:
                         continue
@@ -155,14 +218,15 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, background, width, height,
+def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
               tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts):
     """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...]."""
     D = colors.shape[2]
     half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
     zero = half - half
     n_tiles = tiles_x * (-(-height // TILE))
-    for gt in prange(offsets.shape[0] - 1):
+    for i in prange(work.shape[0]):
+        gt = work[i]
         cam, tile = gt // n_tiles, gt % n_tiles
         x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
         P = w * h
@@ -196,9 +260,11 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
                 col[d] = colors[cam, g, d]
             smax = sigma_max[g]
             bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
+            ok, det, s = _span_params(a, b, c, smax)
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
-                for px in range(bx0, bx1 + 1):
+                rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
+                for px in range(rx0, rx1 + 1):
                     p = (py - y0) * w + (px - x0)
                     if k >= stop[p]:
                         continue
@@ -257,14 +323,28 @@ def _reduce(ids, per_pair, offsets, n_cameras, n):
     return out
 
 
-def _parallel(kernel, *args) -> None:
-    """Run a parallel kernel without letting numba change torch's intra-op thread count (see above)."""
+def _parallel(kernel, *args, chunk: int = 0):
+    """Run a parallel kernel without letting numba change torch's intra-op thread count (see above).
+    ``chunk=1`` (the tile kernels): the prange is handed out one iteration at a time, so a free thread takes
+    the next tile of the work list and one expensive tile does not hold a whole static block back (the
+    results do not depend on which thread ran a tile). Not for kernels with whole-array operations outside
+    their prange (np.zeros, slices): numba turns those into parallel loops too, and chunk 1 hands those out
+    element by element (measured: _reduce 80x slower)."""
     threads = torch.get_num_threads()
+    old = numba.set_parallel_chunksize(chunk)
     try:
-        kernel(*args)
+        return kernel(*args)
     finally:
+        numba.set_parallel_chunksize(old)
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
+
+
+def _work_order(offsets: np.ndarray) -> np.ndarray:
+    """Global tiles, most (tile, Gaussian) pairs first (ties by tile index): with dynamic hand-out the long
+    tiles start first and the short ones fill the gaps at the end (longest-processing-time-first)."""
+    cost = np.diff(offsets)
+    return np.argsort(-cost, kind="stable").astype(np.int64)
 
 
 def _consts(dtype) -> np.ndarray:
@@ -273,20 +353,6 @@ def _consts(dtype) -> np.ndarray:
 
 def _np(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy())
-
-
-def _bin_cameras(m, r, depths, width, height, tiles_x, tiles_y):
-    """One tile list for all cameras: camera c's tile t is global tile c * n_tiles + t."""
-    n_tiles = tiles_x * tiles_y
-    offsets, ids, base = [np.zeros(1, np.int64)], [], 0
-    for c in range(m.shape[0]):
-        visible = np.flatnonzero(r[c] > 0)
-        order = visible[np.argsort(depths[c][visible], kind="stable")]
-        off, idc = _bin(m[c], r[c], order, width, height, tiles_x, tiles_y)
-        offsets.append(off[1:] + base)
-        ids.append(idc)
-        base += len(idc)
-    return np.concatenate(offsets), (np.concatenate(ids) if ids else np.zeros(0, np.int64)), n_tiles
 
 
 class _RasterizeCPU(torch.autograd.Function):
@@ -302,7 +368,8 @@ class _RasterizeCPU(torch.autograd.Function):
         bg = _np(background.to(dtype))
         r = _np(radii).astype(np.int64)
         tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-        offsets, ids, n_tiles = _bin_cameras(m, r, _np(depths), width, height, tiles_x, tiles_y)
+        offsets, ids = _parallel(_bin, m, r, _np(depths), width, height, tiles_x, tiles_y)
+        work = _work_order(offsets)
         # alpha >= 1/255 needs sigma <= ln(255 o): beyond that (plus a margin, so the exact alpha test still
         # decides at the boundary) no exp is computed
         with np.errstate(divide="ignore"):
@@ -310,17 +377,17 @@ class _RasterizeCPU(torch.autograd.Function):
         image = np.empty((C, height, width, col.shape[2]), col.dtype)
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
-        _parallel(_forward, m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, image, t_final, last,
-                  _consts(col.dtype))
+        _parallel(_forward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, image, t_final, last,
+                  _consts(col.dtype), chunk=1)
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
-        ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, t_final, last)
+        ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last)
         ctx.size = (width, height, tiles_x)
         alpha = torch.from_numpy(1.0 - t_final)[..., None]
         return torch.from_numpy(image), alpha
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha):
-        m, q, col, o, r, smax, bg, offsets, ids, t_final, last = ctx.arrays
+        m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last = ctx.arrays
         width, height, tiles_x = ctx.size
         C, N, D = col.shape
         gi = (np.zeros((C, height, width, D), col.dtype) if grad_image is None
@@ -328,9 +395,9 @@ class _RasterizeCPU(torch.autograd.Function):
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
         per_pair = np.zeros((len(ids), 6 + D), col.dtype)
-        _parallel(_backward, m, q, col, o, r, smax, offsets, ids, bg, width, height, tiles_x, t_final, last, gi, ga,
-                  per_pair, _consts(col.dtype))
-        g = _reduce(ids, per_pair, offsets, C, N)
+        _parallel(_backward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
+                  gi, ga, per_pair, _consts(col.dtype), chunk=1)
+        g = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None
         if ctx.needs_input_grad[8]:

@@ -207,13 +207,21 @@ class GaussianModel:
     # -------------------------------------------------------------- optimisers
     def make_optimizers(self, lrs: dict[str, float] | None = None, scene_scale: float = 1.0,
                         eps: float = 1e-15) -> dict[str, torch.optim.Adam]:
-        """One Adam per parameter (gsplat layout); ``means`` lr is multiplied by scene_scale."""
+        """One Adam per parameter (gsplat layout); ``means`` lr is multiplied by scene_scale.
+
+        On CPU and CUDA the fused Adam kernel is used (one pass over each parameter instead of a dozen
+        element-wise ops: ~1.5x faster per step on CPU with torch 2.13). It is deterministic and independent
+        of the thread count (element-wise, no reductions; tests/test_splat_model.py checks both); it rounds
+        differently from the for-loop Adam (the same update to ~1 ulp), so runs are not bitwise equal to
+        runs made with the for-loop implementation."""
         lr = dict(DEFAULT_LRS)
         lr.update(lrs or {})
         out = {}
         for name, p in self.params.items():
             scale = scene_scale if name == "means" else 1.0
-            out[name] = torch.optim.Adam([{"params": [p], "lr": lr[name] * scale, "name": name}], eps=eps)
+            fused = p.device.type in ("cpu", "cuda") and p.is_floating_point()
+            out[name] = torch.optim.Adam([{"params": [p], "lr": lr[name] * scale, "name": name}], eps=eps,
+                                         fused=fused or None)
         return out
 
     # ------------------------------------------------------------ persistence

@@ -229,27 +229,3 @@ def pose_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[t
     residual = d.index_select(0, idx[:, 1]) - d.index_select(0, idx[:, 0])
     return _scaled_mse(residual, tp, tn)
 
-
-def event_loss(log_l: torch.Tensor, targets: torch.Tensor, pairs: Sequence[tuple[int, int]],
-               theta_pos, theta_neg) -> torch.Tensor:
-    """The event loss on per-pair counts (random-phase data; the trainer uses ``pose_event_loss``, which also
-    handles exact-reference data). ``targets``: (P, 2, H, W) ON/OFF counts between the poses of each pair
-    (``pair_targets`` of ``bin_polarity_events`` bins), or (P, H, W) net signed counts (read as n ON events
-    where n > 0, |n| OFF events where n < 0: what a net count can say). Loss: mean over pairs and pixels of
-    ((log_l[k2] - log_l[k1]) - (theta_on * n_on - theta_off * n_off)) ** 2 / theta_mean ** 2 (see
-    ``pose_event_loss``). Non-negative, to be ADDED to the blur loss."""
-    if log_l.ndim != 3 or targets.ndim not in (3, 4) or (targets.ndim == 4 and targets.shape[1] != 2):
-        raise ValueError("log_l must be (K, H, W) and targets (P, H, W) or (P, 2, H, W)")
-    if len(pairs) != targets.shape[0]:
-        raise ValueError(f"{len(pairs)} pairs but {targets.shape[0]} target maps")
-    tp, tn = _thetas(theta_pos, theta_neg, log_l)
-    if len(pairs) == 0:
-        return log_l.sum() * 0.0
-    idx = torch.as_tensor([tuple(pr) for pr in pairs], dtype=torch.long, device=log_l.device)
-    delta = log_l.index_select(0, idx[:, 1]) - log_l.index_select(0, idx[:, 0])  # see pose_event_loss
-    tg = targets.to(delta.dtype)
-    if tg.ndim == 3:
-        expected = tp * tg.clamp(min=0) - tn * (-tg).clamp(min=0)
-    else:
-        expected = tp * tg[:, 0] - tn * tg[:, 1]
-    return _scaled_mse(delta - expected, tp, tn)
