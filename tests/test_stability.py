@@ -637,10 +637,11 @@ def test_srgb_conversions_extremes(dtype):
        cf=st.sampled_from(["none", "RGGB", "BGGR", "GRBG", "GBRG"]),
        targets=st.sampled_from(["empty", "thousands", "mixed"]),
        theta=st.sampled_from([1e-3, 1e-2, 0.2, 5.0]), learn=st.booleans(),
-       dtype=st.sampled_from([torch.float32, torch.float64]), seed=st.integers(0, 2**16))
-def test_event_loss_extremes(kind, K, H, W, cf, targets, theta, learn, dtype, seed):
-    from ev3dgs.train.events import pair_list, pair_targets
-    from ev3dgs.train.losses import event_loss, log_intensity
+       dtype=st.sampled_from([torch.float32, torch.float64]), seed=st.integers(0, 2**16),
+       convention=st.sampled_from(["random_phase", "exact_reference"]))
+def test_event_loss_extremes(kind, K, H, W, cf, targets, theta, learn, dtype, seed, convention):
+    from ev3dgs.train.events import pair_list, pose_counts
+    from ev3dgs.train.losses import log_intensity, pose_event_loss
 
     rng = np.random.default_rng(seed)
     r = _renders(kind, K, H, W, rng, dtype)
@@ -654,15 +655,15 @@ def test_event_loss_extremes(kind, K, H, W, cf, targets, theta, learn, dtype, se
     else:
         bins = torch.as_tensor(rng.integers(-3, 4, (K - 1, H, W)), dtype=torch.float32)
     pairs = pair_list(K)
-    tg = pair_targets(bins, pairs)
+    counts = pose_counts(torch.stack([bins.clamp(min=0), (-bins).clamp(min=0)], dim=1))  # ON/OFF, cumulative
     if learn:  # learnable thresholds, parametrised as the trainer does (exp of a log threshold)
         lp = torch.tensor(math.log(theta), requires_grad=True)
         ln = torch.tensor(math.log(theta * 1.5), requires_grad=True)
         tp, tn = lp.exp(), ln.exp()
     else:
         tp, tn = theta, theta * 1.5
-    loss = event_loss(log_l, tg, pairs, tp, tn)
-    assert_finite(loss, "event_loss")
+    loss = pose_event_loss(log_l, counts, pairs, tp, tn, convention)
+    assert_finite(loss, "pose_event_loss")
     assert float(loss.detach()) >= 0
     loss.backward()
     assert_grads_finite({"renders": r})
@@ -675,18 +676,20 @@ def test_event_loss_extremes(kind, K, H, W, cf, targets, theta, learn, dtype, se
 
 def test_event_loss_with_raw_near_zero_threshold_tensors():
     from ev3dgs.train.events import pair_list
-    from ev3dgs.train.losses import event_loss, log_intensity
+    from ev3dgs.train.losses import log_intensity, pose_event_loss
 
     r = torch.zeros(3, 4, 4, 3, requires_grad=True)  # black, identical sub-frames: delta == 0 exactly
-    log_l = log_intensity(r)
     pairs = pair_list(3)
     tp = torch.tensor(1e-6, requires_grad=True)
     tn = torch.tensor(1e-6, requires_grad=True)
-    loss = event_loss(log_l, torch.zeros(len(pairs), 4, 4), pairs, tp, tn)
-    loss.backward()
-    assert float(loss.detach()) == 0.0
-    assert_grads_finite({"renders": r, "theta_pos": tp, "theta_neg": tn})
-    empty = event_loss(log_l, torch.zeros(0, 4, 4), [], tp, tn)
+    no_events = torch.zeros(3, 2, 4, 4)
+    for convention in ("random_phase", "exact_reference"):  # no events: both expect no change
+        log_l = log_intensity(r)
+        loss = pose_event_loss(log_l, no_events, pairs, tp, tn, convention)
+        loss.backward()
+        assert float(loss.detach()) == 0.0
+        assert_grads_finite({"renders": r, "theta_pos": tp, "theta_neg": tn})
+    empty = pose_event_loss(log_l, no_events, [], tp, tn)
     assert float(empty.detach()) == 0.0
 
 
