@@ -89,7 +89,6 @@ def run(args) -> int:
     except BaseException:
         viewer.stop()
         raise
-    viewer.announce()
-    viewer.wait()
+    viewer.serve()
     print("viewer stopped", file=sys.stderr)
     return 0

@@ -249,14 +249,16 @@ class Viewer:
                   "with no password; use it only on a network you trust", file=sys.stderr)
         print(f"ev3dgs view: {self.url}  (Ctrl-C to stop)", flush=True)
 
-    def wait(self) -> None:
-        """Serve until Ctrl-C (SIGINT) or SIGTERM, then stop cleanly. The handlers are set here, not
-        inherited: a shell starts background jobs with SIGINT ignored, and a viewer must still stop on it."""
+    def serve(self) -> None:
+        """Print the URL and serve until Ctrl-C (SIGINT) or SIGTERM, then stop cleanly. The handlers are set
+        here, not inherited (a shell starts background jobs with SIGINT ignored, and a viewer must still stop
+        on it), and before the URL is printed, so a signal sent as soon as the URL appears stops it cleanly."""
         def interrupt(signum, frame):
             raise KeyboardInterrupt
 
         old = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
         try:
+            self.announce()
             while True:
                 time.sleep(0.2)
         except KeyboardInterrupt:
