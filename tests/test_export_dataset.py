@@ -33,7 +33,7 @@ from ev3dgs import schema
 from ev3dgs.cli.main import main
 from ev3dgs.events import Events
 from ev3dgs.exporters import export_dataset
-from ev3dgs.exporters.common import EventStream
+from ev3dgs.event_file import EventFile
 from ev3dgs.exporters.torch_file import save_streamed
 from ev3dgs.geometry import intrinsics, rotvec_to_matrix
 from ev3dgs.io.e2nerf import import_e2nerf
@@ -251,19 +251,17 @@ def test_event_stream_searchsorted_matches_numpy(tmp_path_factory, ts, chunk, qu
         for n, a in (("t", t), ("x", np.zeros(len(t), np.uint16)), ("y", np.zeros(len(t), np.uint16)),
                      ("p", np.ones(len(t), np.int8))):
             f.create_dataset(f"events/{n}", data=a)
-    with EventStream(path, chunk=chunk) as es:
+    with EventFile(path, chunk=chunk) as es:
         for side in ("left", "right"):
             assert np.array_equal(es.searchsorted(queries, side), np.searchsorted(t, queries, side))
         assert np.array_equal(np.concatenate([b.t for b in es.blocks()] or [np.zeros(0, np.int64)]), t)
 
 
 def test_outputs_do_not_depend_on_the_chunk_size(scene, tmp_path, monkeypatch):
-    import ev3dgs.exporters.common as common
-
     path, _ = scene
     export_dataset(path, "events-h5", tmp_path / "a", quiet=True)
     export_dataset(path, "e2nerf", tmp_path / "c", quiet=True)
-    monkeypatch.setattr(common.EventStream.__init__, "__defaults__", (7,))      # 7-event blocks
+    monkeypatch.setattr(EventFile.__init__, "__defaults__", (7,))      # 7-event blocks
     export_dataset(path, "events-h5", tmp_path / "b", quiet=True)
     export_dataset(path, "e2nerf", tmp_path / "d", quiet=True)
     with h5py.File(tmp_path / "a" / "events.h5") as fa, h5py.File(tmp_path / "b" / "events.h5") as fb:

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from ev3dgs import schema
 from ev3dgs.cli import main as cli
 from ev3dgs.errors import Ev3dgsError, InputError, SchemaError
+from ev3dgs.event_file import EventFile
 from ev3dgs.geometry import quat_to_matrix, rotvec_to_matrix
 from ev3dgs.splat.model import GaussianModel
 from ev3dgs.view import data
@@ -85,7 +86,7 @@ def test_top_view_looks_down_the_cameras_up():
 
 def test_event_counts_are_the_exposure_window(scene_path, content):
     per_view, _ = view_events(npr.default_rng(7))
-    with data.EventReader(scene_path) as r:
+    with EventFile(scene_path) as r:
         for v in range(N):
             on, off = content.event_counts(r, v, 1.0)
             x, y, p, t = per_view[v]
@@ -106,7 +107,7 @@ def test_event_counts_are_the_exposure_window(scene_path, content):
 def test_event_window_matches_searchsorted(scene_path, a, b):
     lo, hi = min(a, b), max(a, b)
     t_all = np.asarray(schema.read(scene_path).events.t)
-    with data.EventReader(scene_path) as r:
+    with EventFile(scene_path) as r:
         t, x, y, p = r.window(lo, hi)
     i, j = np.searchsorted(t_all, [lo, hi], side="left")
     np.testing.assert_array_equal(t, t_all[i:j])

@@ -16,6 +16,7 @@ import pytest
 
 pytest.importorskip("viser")
 
+from ev3dgs.event_file import EventFile  # noqa: E402
 from ev3dgs.view import data  # noqa: E402
 from ev3dgs.view.server import Viewer  # noqa: E402
 
@@ -40,7 +41,7 @@ def test_panel_shows_the_selected_view(scene_path):
         v.time_slider.value = 50
         v._update_events()
         np.testing.assert_array_equal(v.frame_image.image, c.frame(3))
-        with data.EventReader(scene_path) as r:
+        with EventFile(scene_path) as r:
             on, off = c.event_counts(r, 3, 0.5)
         np.testing.assert_array_equal(v.event_image.image, data.event_image(on, off))
         assert "**view 3**" in v.caption.content and f"{int(on.sum())} ON" in v.caption.content

@@ -2,7 +2,7 @@
 
 One module per format (e2nerf, events_h5, aedat4, transforms), each `export(scene, events_path, stage, quiet,
 **options) -> dict` writing into a staged folder (common.staged_dir) that becomes --out only when complete.
-Events are streamed from the scene file in blocks (common.EventStream), never loaded whole.
+Events are streamed from the scene file in blocks (ev3dgs.event_file.EventFile), never loaded whole.
 """
 from __future__ import annotations
 

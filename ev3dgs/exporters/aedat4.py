@@ -13,7 +13,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.aedat4_writer import COMPRESSION, write_aedat4
-from .common import EventStream, progress
+from ..event_file import EventFile
+from .common import progress
 from .notes import sensor_lines
 
 
@@ -41,7 +42,7 @@ def export(sc, ev_path: str, stage: Path, quiet: bool = False, compression: str 
     if sc.train is not None:
         exp = np.asarray(sc.train.exposure, np.int64)
         frames = [_LazyFrame(sc.train.images, i, a, b) for i, (a, b) in enumerate(exp)]
-    with EventStream(ev_path) as es:
+    with EventFile(ev_path) as es:
         bar = progress(len(es), "aedat4", quiet)
 
         def chunks():

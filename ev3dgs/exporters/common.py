@@ -1,12 +1,12 @@
-"""What every exporter shares: the staged output folder, the event stream read in chunks, progress, images.
+"""What every exporter shares: the staged output folder, progress, images.
 
 Output folder: everything is written into a temporary sibling `.DIR.tmp-PID` and renamed to DIR at the end,
 so an interrupted export leaves nothing half-written under DIR (a later export removes the sibling once its
 process is gone). An existing non-empty DIR is refused unless `force`; with `force` the old folder is moved
 aside, the new one renamed into place, then the old one deleted.
 
-Events are never loaded whole: `EventStream` reads `/events/*` in blocks of `chunk` rows (default 2^20
-events, 13 MiB as t, x, y, p), with the file opened once.
+Events are never loaded whole: ev3dgs.event_file.EventFile reads `/events/*` in blocks of `chunk` rows
+(default 2^20 events, 13 MiB as t, x, y, p), with the file opened once.
 """
 from __future__ import annotations
 
@@ -19,14 +19,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
-import h5py
 import numpy as np
 
 from ..errors import InputError
-from ..events import Events
 from ..outputs import OutputError, _pid_alive, check_output_dir, os_error_message
 
-CHUNK = 1 << 20          # events per block read from the scene file
 _STAGE = ".{name}.tmp-{pid}"
 
 
@@ -88,48 +85,6 @@ def staged_dir(out: str | os.PathLike, force: bool = False) -> Iterator[Path]:
 
 
 # ------------------------------------------------------------------------------------------ events
-
-class EventStream:
-    """The scene file's /events read in blocks (see module doc); use as a context manager."""
-
-    def __init__(self, path: str | os.PathLike, chunk: int = CHUNK) -> None:
-        self.path = str(path)
-        self.chunk = int(chunk)
-        self._f = h5py.File(self.path, "r")
-        self._ds = {n: self._f[f"/events/{n}"] for n in ("t", "x", "y", "p")}
-        self.n = int(self._ds["t"].shape[0])
-
-    def __enter__(self) -> EventStream:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._f.close()
-
-    def __len__(self) -> int:
-        return self.n
-
-    def read(self, i: int, j: int) -> Events:
-        return Events(*(self._ds[n][i:j] for n in ("t", "x", "y", "p")))
-
-    def blocks(self, i: int = 0, j: int | None = None) -> Iterator[Events]:
-        """Events i..j-1 (default all) as consecutive Events of at most `chunk` rows."""
-        j = self.n if j is None else j
-        for a in range(i, j, self.chunk):
-            yield self.read(a, min(a + self.chunk, j))
-
-    def searchsorted(self, values, side: str = "left") -> np.ndarray:
-        """np.searchsorted(t, values, side) over the whole stream in one pass over t: on sorted t the global
-        index is the sum over blocks of the per-block counts."""
-        v = np.asarray(values, dtype=np.int64)
-        out = np.zeros(v.shape, dtype=np.int64)
-        ds = self._ds["t"]
-        for a in range(0, self.n, self.chunk):
-            out += np.searchsorted(ds[a:a + self.chunk], v, side=side)
-        return out
-
 
 def progress(total: int, desc: str, quiet: bool, unit: str = "ev"):
     """A tqdm bar on a terminal; silent when stderr is not a TTY or with quiet."""

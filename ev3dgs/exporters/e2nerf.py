@@ -32,7 +32,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import interpolate_pose, opencv_to_blender, project
-from .common import EventStream, image_width, progress, write_png
+from ..event_file import EventFile
+from .common import image_width, progress, write_png
 from .notes import intrinsics_lines, sensor_lines, transfer_lines
 from .torch_file import save_streamed
 
@@ -66,7 +67,7 @@ def _write_events(stage: Path, ev_path: str, sc, edges: np.ndarray, quiet: bool)
 
     N, b = edges.shape[0], edges.shape[1] - 1
     H, W = sc.camera.height, sc.camera.width
-    with EventStream(ev_path) as es:
+    with EventFile(ev_path) as es:
         lo = es.searchsorted(edges[:, 0], "left")
         hi = es.searchsorted(edges[:, -1], "right")
         kept = int(np.sum(hi - lo))

@@ -26,14 +26,15 @@ import h5py
 import numpy as np
 
 from ..errors import InputError
-from .common import EventStream, image_width, progress, write_png
+from ..event_file import EventFile
+from .common import image_width, progress, write_png
 from .notes import sensor_lines
 
 _GZIP = dict(compression="gzip", compression_opts=4, shuffle=True)
 _CHUNK_ROWS = 1 << 18
 
 
-def _t_offset(sc, es: EventStream) -> int:
+def _t_offset(sc, es: EventFile) -> int:
     starts = []
     if len(es):
         starts.append(int(es.read(0, 1).t[0]))
@@ -44,7 +45,7 @@ def _t_offset(sc, es: EventStream) -> int:
 
 def export(sc, ev_path: str, stage: Path, quiet: bool = False) -> dict:
     W, H = sc.camera.width, sc.camera.height
-    with EventStream(ev_path) as es:
+    with EventFile(ev_path) as es:
         E = len(es)
         off = _t_offset(sc, es)
         t_last = int(es.read(E - 1, E).t[0]) - off if E else 0

@@ -14,16 +14,15 @@
 """
 from __future__ import annotations
 
-import bisect
 import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from .. import schema
+from ..event_file import EventFile
 from ..errors import InputError
 from ..geometry import matrix_to_quat, relative_rotation_angle, rotvec_to_matrix
 
@@ -86,44 +85,6 @@ def top_view_basis(rotations: np.ndarray) -> np.ndarray:
 
 
 # -------------------------------------------------------------------------------------- events
-
-class EventReader:
-    """The events of a scene file between two times, found by binary search in /events/t (the file opened
-    once, with a chunk cache large enough that the search decompresses each chunk once)."""
-
-    def __init__(self, path: str | os.PathLike):
-        self.path = str(path)
-        try:
-            self._f = h5py.File(self.path, "r", rdcc_nbytes=64 << 20)
-        except OSError as e:
-            raise schema.SchemaError(f"{self.path}: not a readable HDF5 file ({e})") from None
-        self._t = self._f["/events/t"]
-
-    def close(self) -> None:
-        self._f.close()
-
-    def __enter__(self) -> EventReader:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def _index(self, t: int) -> int:
-        class _T:  # bisect over the dataset without reading it whole
-            def __len__(_):
-                return self._t.shape[0]
-
-            def __getitem__(_, i):
-                return int(self._t[i])
-
-        return bisect.bisect_left(_T(), int(t))
-
-    def window(self, start_us: int, end_us: int):
-        """Events with start <= t < end, as (t, x, y, p) numpy arrays."""
-        i, j = self._index(start_us), self._index(end_us)
-        f = self._f
-        return (f["/events/t"][i:j], f["/events/x"][i:j], f["/events/y"][i:j], f["/events/p"][i:j])
-
 
 def polarity_counts(x: np.ndarray, y: np.ndarray, p: np.ndarray, width: int, height: int):
     """(on, off): per-pixel event counts (H, W) of each polarity."""
@@ -294,7 +255,7 @@ class SceneContent:
     def mid_poses(self) -> np.ndarray | None:
         return None if self.train_poses is None else self.train_poses[:, self.train_poses.shape[1] // 2]
 
-    def event_counts(self, reader: EventReader, i: int, fraction: float = 1.0):
+    def event_counts(self, reader: EventFile, i: int, fraction: float = 1.0):
         """(on, off) counts of view i's exposure from its start up to `fraction` of it."""
         start = int(self.exposure[i, 0])
         _, x, y, p = reader.window(start, accumulation_time(self.exposure[i], fraction))

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..event_file import EventFile
 from . import data
 
 TRAIN, TEST, REFINED, IMU = "#e6781e", "#5050c8", "#c81ea0", "#2a9d8f"
@@ -121,7 +122,7 @@ def draw(content: data.SceneContent | data.RunContent, rows: int = 4):
     gs = fig.add_gridspec(max(len(idx), 2), len(cols) + (2 if has_poses else 0),
                           width_ratios=[1] * len(cols) + ([1.4, 1.4] if has_poses else []))
     renders = _renders(run, c.mid_poses()[idx]) if run is not None and has_poses else None
-    with data.EventReader(c.path) as reader:
+    with EventFile(c.path) as reader:
         for r, i in enumerate(idx):
             on, off = c.event_counts(reader, i)
             imgs = [np.asarray(c.frame(i))]

@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from ..errors import Ev3dgsError
+from ..event_file import EventFile
 from . import data
 
 TRAIN_COLOUR = (230, 120, 20)      # training frusta and trajectories
@@ -73,7 +74,7 @@ class Viewer:
         self._lock = threading.RLock()
         self._splats = None
         self._content: data.SceneContent | None = None
-        self._reader: data.EventReader | None = None
+        self._reader: EventFile | None = None
         self.status = self.server.gui.add_markdown("", order=0)
 
     # ------------------------------------------------------------------ the scene
@@ -177,7 +178,7 @@ class Viewer:
         n = c.n_views
         if n == 0:
             return
-        self._reader = data.EventReader(c.path)
+        self._reader = EventFile(c.path)
         select = int(min(max(select, 0), n - 1))
         self.view_slider = g.add_slider("view", 0, max(n - 1, 1), 1, select, disabled=n < 2, order=2)
         self.time_slider = g.add_slider("events up to (% of exposure)", 0, 100, 1, 100, order=3)
