@@ -264,21 +264,16 @@ def plot(out: dict, png: str) -> None:
     lo = min(min(out["runs"][n]["blur_view_psnr"], out["runs"][n]["novel_view_psnr"]) for n in names)
     ax[0].set_ylim(lo - 2, None)
     ax[0].legend(fontsize=8)
-    ax[1].plot(out["pose_errors_before"]["rotation_deg_per_view"], "ko-", label="perturbed (before)")
-    for n in names:
-        if "pose_errors_after" in out["runs"][n]:
-            ax[1].plot(out["runs"][n]["pose_errors_after"]["rotation_deg_per_view"], "o-", label=n)
-    ax[1].set_xlabel("training view")
-    ax[1].set_ylabel("mid-exposure rotation error (deg, unaligned)")
-    ax[1].legend(fontsize=7)
-    ax[2].plot(out["pose_errors_before"]["reprojection_px_per_view"], "ko-", label="perturbed (before)")
-    for n in names:
-        if "pose_errors_after" in out["runs"][n]:
-            ax[2].plot(out["runs"][n]["pose_errors_after"]["reprojection_px_per_view"], "o-", label=n)
-    ax[2].set_xlabel("training view")
-    ax[2].set_ylabel("median reprojection error of scene points (px)")
+    for a, key, ylabel in ((ax[1], "rotation_deg_per_view", "mid-exposure rotation error (deg, unaligned)"),
+                           (ax[2], "reprojection_px_per_view", "median reprojection error of scene points (px)")):
+        a.plot(out["pose_errors_before"][key], "ko-", label="perturbed (before)")
+        for n in names:
+            if "pose_errors_after" in out["runs"][n]:
+                a.plot(out["runs"][n]["pose_errors_after"][key], "o-", label=n)
+        a.set_xlabel("training view")
+        a.set_ylabel(ylabel)
+        a.legend(fontsize=7)
     ax[2].set_ylim(0, None)
-    ax[2].legend(fontsize=7)
     fig.suptitle(f"--refine-poses on {out['scene']} {out['size']} (FOV {out['fov_deg']:.0f} deg), {out['views']} "
                  f"views, {out['iterations']} steps, {out['rot_deg']} deg / {out['trans_frac']:.0%} pose errors",
                  fontsize=9)

@@ -79,7 +79,7 @@ class Viewer:
 
     # ------------------------------------------------------------------ the scene
     def show_scene(self, c: data.SceneContent, select: int = 0) -> None:
-        s, g = self.server.scene, self.server.gui
+        s = self.server.scene
         self._content = c
         ext = c.extent
         W, H = c.size
