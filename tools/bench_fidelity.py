@@ -38,7 +38,9 @@ sys.path.insert(0, str(ROOT))
 from ev3dgs.sim.dataset import make_dataset  # noqa: E402
 from ev3dgs.sim.scenes import builtin_scenes, load_scene, resolve_render  # noqa: E402
 from ev3dgs.train.config import TrainConfig  # noqa: E402
+from ev3dgs.errors import InputError  # noqa: E402
 from ev3dgs.train.evaluate import evaluate  # noqa: E402
+from ev3dgs.train.lpips import load_lpips  # noqa: E402
 from ev3dgs.train.trainer import Trainer  # noqa: E402
 
 VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict(),
@@ -87,7 +89,8 @@ def build_scene(name: str, render: dict, cache: Path, quiet: bool) -> Path:
     return path
 
 
-def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_points: int, out: Path) -> dict:
+def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_points: int, out: Path,
+            lpips_weights=None) -> dict:
     cfg = TrainConfig(scene=str(scene), iterations=iterations, init_points=init_points, seed=seed,
                       checkpoint_every=max(iterations, 1), **overrides)
     done = out / "metrics.json"
@@ -96,11 +99,16 @@ def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_point
         old = TrainConfig.load(out / "config.json")
         cached = json.loads(done.read_text())
         if not old.differences(cfg, ignore=("checkpoint_every", "threads")) and cached.get("code") == code:
-            return cached
+            if lpips_weights is None or cached.get("lpips"):
+                return cached
+            m = evaluate(out, lpips_weights=lpips_weights, write_images=False)  # trained earlier without LPIPS
+            m |= {k: cached.get(k) for k in ("train_seconds", "code")}
+            done.write_text(json.dumps(m, indent=2))
+            return m
     t = time.perf_counter()
     Trainer(cfg, out, quiet=True).fit()
     seconds = time.perf_counter() - t
-    m = evaluate(out, write_images=False)
+    m = evaluate(out, lpips_weights=lpips_weights, write_images=False)
     m["train_seconds"] = seconds
     m["code"] = code
     done.write_text(json.dumps(m, indent=2))
@@ -115,8 +123,9 @@ def summarise(runs: list[dict], variants=VARIANTS) -> dict:
         cell = table.setdefault(r["scene"], {}).setdefault(r["variant"], {})
         for view in VIEWS:
             if view in r["metrics"]:
-                for k in ("psnr", "ssim"):
-                    cell.setdefault(view, {}).setdefault(k, {})[r["seed"]] = r["metrics"][view][k]
+                for k in ("psnr", "ssim", "lpips"):
+                    if k in r["metrics"][view]:
+                        cell.setdefault(view, {}).setdefault(k, {})[r["seed"]] = r["metrics"][view][k]
     out: dict = {}
     for scene, variants in table.items():
         for variant, views in variants.items():
@@ -130,7 +139,7 @@ def summarise(runs: list[dict], variants=VARIANTS) -> dict:
     avg: dict = {}
     for variant in variants:
         for view in VIEWS:
-            for k in ("psnr", "ssim"):
+            for k in ("psnr", "ssim", "lpips"):
                 per_seed = {}
                 for s in scenes:
                     for seed, val in table[s].get(variant, {}).get(view, {}).get(k, {}).items():
@@ -226,8 +235,15 @@ def main(argv=None) -> int:
                     help="datasets and run folders (default %(default)s)")
     ap.add_argument("--json", type=Path, help="summary JSON (default tools/results/bench_fidelity[_quick].json)")
     ap.add_argument("--plot", type=Path, help="PSNR bar plot (default tools/results/bench_fidelity[_quick].png)")
+    ap.add_argument("--lpips-weights", type=Path, help="LPIPS v0.1 weights file passed to evaluate (see ev3dgs eval "
+                    "--help; default: none, no LPIPS)")
     ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
+    if a.lpips_weights:
+        try:
+            load_lpips(a.lpips_weights)  # a bad file fails now, not after the first training run
+        except InputError as e:
+            ap.error(str(e))
     preset = QUICK if a.quick else FULL
     if a.event_weights and any(not (w >= 0) for w in a.event_weights):
         ap.error("--event-weights must be >= 0")
@@ -250,7 +266,7 @@ def main(argv=None) -> int:
                 tag = variant.replace("+", "_").replace("@", "_w")
                 out = a.cache / "runs" / f"{path.stem}" / f"{tag}_s{seed}"
                 t = time.perf_counter()
-                m = run_one(path, overrides, seed, iterations, a.init_points, out)
+                m = run_one(path, overrides, seed, iterations, a.init_points, out, a.lpips_weights)
                 runs.append({"scene": name, "variant": variant, "seed": seed, "metrics": m})
                 if not a.quiet:
                     bv, nv = m.get("blur_view", {}).get("psnr"), m.get("novel_view", {}).get("psnr")
