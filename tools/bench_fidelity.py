@@ -41,7 +41,9 @@ sys.path.insert(0, str(ROOT))
 from ev3dgs.sim.dataset import make_dataset  # noqa: E402
 from ev3dgs.sim.scenes import builtin_scenes, load_scene, resolve_render  # noqa: E402
 from ev3dgs.train.config import TrainConfig  # noqa: E402
+from ev3dgs.errors import InputError  # noqa: E402
 from ev3dgs.train.evaluate import evaluate  # noqa: E402
+from ev3dgs.train.lpips import load_lpips  # noqa: E402
 from ev3dgs.train.trainer import Trainer  # noqa: E402
 
 VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict(),
@@ -58,11 +60,18 @@ VIEWS = ("blur_view", "novel_view")
 OMEGA_UNIT = 1.0 / 625.0  # --event-weights are in units of the trainer's default omega (Ev3DGS's 1/625)
 
 
-def code_hash() -> str:
-    """sha256 (first 16 hex) of the trainer's and renderer's sources: cached runs made by other code are redone."""
+EVAL_ONLY = ("evaluate.py", "metrics.py", "lpips.py")  # scoring code: a change there re-scores, never retrains
+
+
+def code_hash(scoring: bool = False) -> str:
+    """sha256 (first 16 hex) of the trainer's and renderer's sources without the scoring modules (``scoring``:
+    of the scoring modules alone). A cached run made by other training code is trained again; one scored by
+    other scoring code is only evaluated again."""
     h = hashlib.sha256()
     for sub in ("ev3dgs/train", "ev3dgs/splat"):
         for f in sorted((ROOT / sub).rglob("*.py")):
+            if (f.name in EVAL_ONLY) != scoring:
+                continue
             h.update(str(f.relative_to(ROOT)).encode())
             h.update(f.read_bytes())
     return h.hexdigest()[:16]
@@ -92,22 +101,30 @@ def build_scene(name: str, render: dict, cache: Path, quiet: bool) -> Path:
     return path
 
 
-def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_points: int, out: Path) -> dict:
+def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_points: int, out: Path,
+            lpips_weights=None) -> dict:
     cfg = TrainConfig(scene=str(scene), iterations=iterations, init_points=init_points, seed=seed,
                       checkpoint_every=max(iterations, 1), threads=1, **overrides)
     done = out / "metrics.json"
-    code = code_hash()
+    code, scoring = code_hash(), code_hash(scoring=True)
     if done.exists() and (out / "config.json").exists():
         old = TrainConfig.load(out / "config.json")
         cached = json.loads(done.read_text())
         if not old.differences(cfg, ignore=("checkpoint_every", "threads")) and cached.get("code") == code:
-            return cached
+            if cached.get("scoring_code") == scoring and (lpips_weights is None or cached.get("lpips")):
+                return cached
+            # trained by this code, scored by other code or without LPIPS: score again, do not retrain
+            m = evaluate(out, lpips_weights=lpips_weights, write_images=False)
+            m |= {k: cached.get(k) for k in ("train_seconds", "code")} | {"scoring_code": scoring}
+            done.write_text(json.dumps(m, indent=2))
+            return m
     t = time.perf_counter()
     Trainer(cfg, out, quiet=True).fit()
     seconds = time.perf_counter() - t
-    m = evaluate(out, write_images=False)
+    m = evaluate(out, lpips_weights=lpips_weights, write_images=False)
     m["train_seconds"] = seconds
     m["code"] = code
+    m["scoring_code"] = scoring
     done.write_text(json.dumps(m, indent=2))
     return m
 
@@ -119,7 +136,7 @@ def _run_job(job: dict) -> dict:
     torch.set_num_threads(1)
     t = time.perf_counter()
     m = run_one(Path(job["scene_path"]), job["overrides"], job["seed"], job["iterations"], job["init_points"],
-                Path(job["out"]))
+                Path(job["out"]), job["lpips_weights"])
     return {"scene": job["scene"], "variant": job["variant"], "seed": job["seed"], "metrics": m,
             "wall": time.perf_counter() - t}
 
@@ -166,8 +183,9 @@ def summarise(runs: list[dict], variants=VARIANTS) -> dict:
         cell = table.setdefault(r["scene"], {}).setdefault(r["variant"], {})
         for view in VIEWS:
             if view in r["metrics"]:
-                for k in ("psnr", "ssim"):
-                    cell.setdefault(view, {}).setdefault(k, {})[r["seed"]] = r["metrics"][view][k]
+                for k in ("psnr", "ssim", "lpips"):
+                    if k in r["metrics"][view]:
+                        cell.setdefault(view, {}).setdefault(k, {})[r["seed"]] = r["metrics"][view][k]
     out: dict = {}
     for scene, variants in table.items():
         for variant, views in variants.items():
@@ -181,7 +199,7 @@ def summarise(runs: list[dict], variants=VARIANTS) -> dict:
     avg: dict = {}
     for variant in variants:
         for view in VIEWS:
-            for k in ("psnr", "ssim"):
+            for k in ("psnr", "ssim", "lpips"):
                 per_seed = {}
                 for s in scenes:
                     for seed, val in table[s].get(variant, {}).get(view, {}).get(k, {}).items():
@@ -282,8 +300,15 @@ def main(argv=None) -> int:
                     help="datasets and run folders (default %(default)s)")
     ap.add_argument("--json", type=Path, help="summary JSON (default tools/results/bench_fidelity[_quick].json)")
     ap.add_argument("--plot", type=Path, help="PSNR bar plot (default tools/results/bench_fidelity[_quick].png)")
+    ap.add_argument("--lpips-weights", type=Path, help="LPIPS v0.1 weights file passed to evaluate (see ev3dgs eval "
+                    "--help; default: none, no LPIPS)")
     ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
+    if a.lpips_weights:
+        try:
+            load_lpips(a.lpips_weights)  # a bad file fails now, not after the first training run
+        except InputError as e:
+            ap.error(str(e))
     preset = dict(QUICK if a.quick else FULL)
     render = dict(preset["render"])
     if a.size:
@@ -323,6 +348,7 @@ def main(argv=None) -> int:
                 tag = variant.replace("+", "_").replace("@", "_w")
                 jobs.append({"scene": name, "scene_path": str(paths[name]), "variant": variant, "seed": seed,
                              "overrides": overrides, "iterations": iterations, "init_points": a.init_points,
+                             "lpips_weights": a.lpips_weights and str(a.lpips_weights),
                              "out": str(a.cache / "runs" / paths[name].stem / f"{tag}_s{seed}")})
     runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]
     summary = summarise(runs, variants)

@@ -96,8 +96,10 @@ def _eval(args) -> int:
                        ("blur_view_given_poses", "deblurred, at given poses"),
                        ("blurry_input", "blurry input (baseline)")):
         if key in m:
-            print(f"{label:26s} PSNR {m[key]['psnr']:6.2f} dB  SSIM {m[key]['ssim']:.4f}  ({m[key]['n']} views)")
-    print(f"LPIPS: {m['lpips_reason']}" if m["lpips"] is None else f"LPIPS {m['lpips']:.4f}")
+            lp = f"  LPIPS {m[key]['lpips']:.4f}" if "lpips" in m[key] else ""
+            print(f"{label:26s} PSNR {m[key]['psnr']:6.2f} dB  SSIM {m[key]['ssim']:.4f}{lp}  ({m[key]['n']} views)")
+    lp = m["lpips"]
+    print(f"LPIPS: {m['lpips_reason']}" if lp is None else f"LPIPS v{lp['version']} ({lp['net']}, {lp['weights']})")
     print(f"-> {args.run}/metrics.json, {args.run}/eval/*.png")
     return 0
 
@@ -236,10 +238,13 @@ def build_parser():
     add_train_options(t)  # --view, --view-every, --view-host, --view-port
     t.set_defaults(func=_train)
     _record_given(t)
-    e = sub.add_parser("eval", help="PSNR/SSIM on sharp novel and deblurred training views -> metrics.json")
+    e = sub.add_parser("eval", help="PSNR/SSIM (LPIPS with --lpips-weights) on sharp novel and deblurred training "
+                                    "views -> metrics.json")
     e.add_argument("run", help="run folder written by `ev3dgs train`")
-    e.add_argument("--lpips-weights", help="LPIPS backbone weights file (default: none, LPIPS is skipped; "
-                                           "no downloads are possible here)")
+    e.add_argument("--lpips-weights", metavar="FILE",
+                   help="LPIPS v0.1 weights: one torch file with lpips.LPIPS(net='alex' or 'vgg').state_dict() "
+                        "(recipe: ev3dgs/train/lpips.py); images must be >= 31 px (alex) or 16 px (vgg) per side "
+                        "(default: none, LPIPS is skipped; nothing is downloaded)")
     e.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
                    help="torch device; auto = cuda when available (default %(default)s)")
     e.set_defaults(func=_eval)

@@ -8,7 +8,9 @@ Evaluation protocol (E2NeRF / EvaGaussians), metrics.json keys:
 * "novel_view": /test views at poses not trained on (all of /test for our simulated scenes; the odd-indexed
   ones, config test_novel_views, for E2NeRF imports).
 * "blurry_input": the blurry training frames against the blur-view ground truth (the baseline).
-Each is {"psnr", "ssim", "n", "psnr_per_view"}; "lpips" is null with its reason unless weights are given.
+Each is {"psnr", "ssim", "n", "psnr_per_view"}, plus "lpips" (mean) and "lpips_per_view" when LPIPS weights are
+given (ev3dgs/train/lpips.py); the top-level "lpips" then names the network ({"net", "version", "weights",
+"sha256", "min_size"}), else it is null and "lpips_reason" says why.
 "variant" is naive / blur-only / blur+event / oracle (TrainConfig.variant). The old keys "test" and
 "train_sharp" are kept as aliases of all /test views and of the /train/sharp blur views.
 
@@ -35,6 +37,7 @@ from .. import schema
 from ..errors import InputError
 from ..splat.model import GaussianModel
 from .config import TrainConfig
+from .lpips import load_lpips
 from .metrics import lpips_unavailable_reason, psnr, ssim_metric
 from .trainer import resolve_device
 
@@ -85,10 +88,14 @@ def _refined_frame(run: Path, sc):
     return refined, align, initial
 
 
-def _scores(pred: list, truth) -> dict:
+def _scores(pred: list, truth, lp=None) -> dict:
     p = [psnr(a, np.asarray(b)) for a, b in zip(pred, truth)]
     s = [ssim_metric(a, np.asarray(b)) for a, b in zip(pred, truth)]
-    return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)), "n": len(p), "psnr_per_view": p}
+    out = {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)), "n": len(p), "psnr_per_view": p}
+    if lp is not None:
+        d = [lp.distance(a, np.asarray(b)) for a, b in zip(pred, truth)]
+        out |= {"lpips": float(np.mean(d)), "lpips_per_view": d}
+    return out
 
 
 def _png(path: Path, *images) -> None:
@@ -115,10 +122,13 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
     K = torch.as_tensor(sc.camera.K, dtype=model.dtype, device=dev)
     bg = torch.as_tensor(sc.camera.background if sc.camera.background is not None else (0, 0, 0),
                          dtype=model.dtype, device=dev)
-    reason = lpips_unavailable_reason(lpips_weights) or "LPIPS network evaluation is not implemented yet"
+    lp = None
+    if lpips_weights is not None:
+        lp = load_lpips(lpips_weights, dev)  # a bad file or too small images fail here, before any rendering
+        lp.check_size(W, H)
     metrics = {"run": str(run), "scene": cfg.scene,
                "variant": cfg.variant, "seed": cfg.seed, "iterations": cfg.iterations,
-               "lpips": None, "lpips_reason": reason}
+               "lpips": lp.info if lp else None, "lpips_reason": None if lp else lpips_unavailable_reason(None)}
     out_dir = run / "eval"
     if write_images:
         out_dir.mkdir(exist_ok=True)
@@ -132,18 +142,18 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
             from .pose_refine import apply_similarity
 
             unaligned = render_views(model, test_poses, K, W, H, bg, cfg.backend)
-            metrics["novel_view_unaligned"] = _scores(unaligned, np.asarray(sc.test.images))
+            metrics["novel_view_unaligned"] = _scores(unaligned, np.asarray(sc.test.images), lp)
             test_poses = apply_similarity(test_poses, align["scale"], np.asarray(align["rotation"]),
                                           np.asarray(align["translation"]))
         pred = render_views(model, test_poses, K, W, H, bg, cfg.backend)
         truth = np.asarray(sc.test.images)
-        metrics["test"] = _scores(pred, truth)
+        metrics["test"] = _scores(pred, truth, lp)
         novel = sc.config.get("test_novel_views") if sc.train.sharp is None else None
         if isinstance(novel, list) and all(isinstance(i, int) and 0 <= i < len(pred) for i in novel):
             blur_ids = [i for i in range(len(pred)) if i not in set(novel)]
-            metrics["novel_view"] = _scores([pred[i] for i in novel], truth[novel])
+            metrics["novel_view"] = _scores([pred[i] for i in novel], truth[novel], lp)
             if blur_ids:
-                metrics["blur_view"] = _scores([pred[i] for i in blur_ids], truth[blur_ids])
+                metrics["blur_view"] = _scores([pred[i] for i in blur_ids], truth[blur_ids], lp)
         else:
             metrics["novel_view"] = metrics["test"]
         for i, (p, t) in enumerate(zip(pred, truth)) if write_images else ():
@@ -153,10 +163,10 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
         pred = render_views(model, np.asarray(tr.sharp_poses), K, W, H, bg, cfg.backend)
         sharp, blurry = np.asarray(tr.sharp), np.asarray(tr.images)
         if refined_mid is not None:
-            metrics["blur_view_given_poses"] = _scores(pred, sharp)
+            metrics["blur_view_given_poses"] = _scores(pred, sharp, lp)
             pred = render_views(model, refined_mid, K, W, H, bg, cfg.backend)
-        metrics["train_sharp"] = metrics["blur_view"] = _scores(pred, sharp)
-        metrics["blurry_input"] = _scores(list(blurry), sharp)
+        metrics["train_sharp"] = metrics["blur_view"] = _scores(pred, sharp, lp)
+        metrics["blurry_input"] = _scores(list(blurry), sharp, lp)
         for i, (b, p, s) in enumerate(zip(blurry, pred, sharp)) if write_images else ():
             _png(out_dir / f"train_{i:03d}.png", b, p, s)
     if "test" not in metrics and "train_sharp" not in metrics:

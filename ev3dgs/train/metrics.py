@@ -1,4 +1,5 @@
-"""Evaluation metrics: PSNR, SSIM (the same SSIM as the training loss, in float64) and the LPIPS status."""
+"""Evaluation metrics: PSNR, SSIM (the same SSIM as the training loss, in float64) and the LPIPS status
+(the network itself is in lpips.py)."""
 from __future__ import annotations
 
 import math
@@ -42,5 +43,5 @@ def lpips_unavailable_reason(weights_path) -> str | None:
     if weights_path and os.path.isfile(weights_path) and os.access(weights_path, os.R_OK):
         return None
     where = f" ({weights_path!s} is not a readable file)" if weights_path else ""
-    return ("LPIPS unavailable: its backbone weights cannot be downloaded here; pass --lpips-weights "
-            f"with a local weights file{where}")
+    return ("LPIPS unavailable: its network weights cannot be downloaded here; pass --lpips-weights "
+            f"with a local weights file (recipe in ev3dgs/train/lpips.py){where}")
