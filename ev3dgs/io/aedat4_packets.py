@@ -29,6 +29,7 @@ import lz4.frame
 import numpy as np
 import zstandard
 
+from . import aedat4_codec as native
 from .flatbuf import FlatbufError, root, table_vector
 from .types import AedatError, FrameData
 
@@ -103,8 +104,13 @@ def decompress(data, comp: int, at: int, out: np.ndarray | None = None) -> np.nd
     (copy what must outlive it)."""
     if comp == 0:
         return np.frombuffer(data, np.uint8)
+    fast = native.available(comp)
+    if out is not None and fast:
+        n = native.decompress_into(data, comp, out)
+        if n is not None:
+            return _checked(out, n, at)
     codec = cramjam.lz4 if comp in (1, 2) else cramjam.zstd
-    if out is not None:
+    if out is not None and not fast:
         try:
             n = codec.decompress_into(data, out)
         except cramjam.DecompressionError:
@@ -114,6 +120,10 @@ def decompress(data, comp: int, at: int, out: np.ndarray | None = None) -> np.nd
     buf = getattr(_local, "buf", None)
     if buf is None:
         buf = _local.buf = np.empty(_SCRATCH0, np.uint8)
+    if fast:
+        n = native.decompress_into(data, comp, buf)
+        if n is not None:
+            return _checked(buf, n, at)
     try:
         n = codec.decompress_into(data, buf)
     except cramjam.DecompressionError as e:
@@ -192,16 +202,18 @@ def decode_events(payload, at: int, alloc=_fresh, pol_out: np.ndarray | None = N
         b[:] = np.frombuffer(body, np.uint8, count=size, offset=start)
     u16 = b.view(_U2)
     t, x, y = b.view(_I8)[0::2], u16[4::8], u16[5::8]
-    pb = b[12::16]                                      # stored polarity byte: 0 (OFF) or 1 (ON)
-    p8 = pb.view(_S8)
-    pol = np.add(p8, p8, out=mem[size:].view(_S8))
-    pol -= 1                                            # 0 -> -1, 1 -> +1
+    q = mem[size:size + n]                  # the stored polarity bytes (0 OFF, 1 ON), gathered contiguously:
+    np.copyto(q, b[12::16])                 # the one strided pass for polarity; the rest is contiguous
     bad_p = 0
-    if n and pb.max() > 1:
-        bad = pb > 1
+    if n and q.max() > 1:
+        bad = q > 1
         bad_p = int(np.count_nonzero(bad))
+    pol = q.view(_S8)
+    np.add(pol, pol, out=pol)
+    pol -= 1                                # 0 -> -1, 1 -> +1
+    if bad_p:
         pol[bad] = -128
-    back = int(np.count_nonzero(t[1:] < t[:-1])) if n > 1 else 0
+    back = int(np.count_nonzero(np.less(t[1:], t[:-1]))) if n > 1 else 0
     return EventArrays(t, x, y, pol, int(x.max()) if n else 0, int(y.max()) if n else 0, bad_p, back)
 
 
@@ -323,20 +335,23 @@ class PacketReader:
         raw, off = self.raw(i)
         return bytes(decompress(memoryview(raw)[8:], self.comp, off))
 
-    def decode(self, i: int, kind: str, source: str = ""):
-        """Packet i decoded as `kind`: EventArrays, FrameData or a dict of sample arrays."""
+    def fetch(self, i: int, kind: str, source: str = ""):
+        """Stage 1 of decoding packet i (safe in a worker thread): read and decompress it. An events packet with
+        a FileDataTable count is decompressed straight into a reused block sized from that count (a
+        size-prefixed EVTS flatbuffer is 16 bytes per event plus < 64) with room for its polarity after it, and
+        returned as (payload, polarity memory) for `finish`; anything else is decoded completely (EventArrays,
+        FrameData or a dict of sample arrays)."""
         raw, off = self.raw(i)
         try:
             if kind == "events":
                 if self.comp and self.elements is not None and 17 * int(self.elements[i]) < _cap(raw) // 2:
-                    # decompress straight into a reused block sized from the table's element count (a size-
-                    # prefixed EVTS flatbuffer is 16 bytes per event plus < 64), pol after it: no memcpy
                     k = int(self.elements[i])
                     need = 16 * k + 64
                     mem = self.blocks(need + k)
                     payload = decompress(memoryview(raw)[8:], self.comp, off, mem[:need])
-                    inplace = np.shares_memory(payload, mem)
-                    return decode_events(payload, off, self.blocks, mem[need:] if inplace else None)
+                    if np.shares_memory(payload, mem):
+                        return payload, mem[need:], off
+                    return decode_events(payload, off, self.blocks)
                 return decode_events(decompress(memoryview(raw)[8:], self.comp, off), off, self.blocks)
             payload = decompress(memoryview(raw)[8:], self.comp, off)
             if kind == "frames":
@@ -345,14 +360,36 @@ class PacketReader:
         except FlatbufError as e:
             raise AedatError(f"byte {off}: corrupt {kind} packet ({e})") from None
 
+    def finish(self, got, kind: str):
+        """Stage 2 (in the consuming thread): unpack what `fetch` left decompressed in place."""
+        if type(got) is not tuple:
+            return got
+        payload, pol, off = got
+        try:
+            return decode_events(payload, off, self.blocks, pol)   # a wrong table count: copied to a block
+        except FlatbufError as e:
+            raise AedatError(f"byte {off}: corrupt {kind} packet ({e})") from None
+
+    def decode(self, i: int, kind: str, source: str = ""):
+        """Packet i decoded as `kind`: EventArrays, FrameData or a dict of sample arrays."""
+        return self.finish(self.fetch(i, kind, source), kind)
+
     def _attempt(self, i: int, kind: str, source: str):
         try:
-            return self.decode(i, kind, source)
+            return self.fetch(i, kind, source)
         except (AedatError, Skip) as e:
             return e
 
     def _attempt_group(self, group: list[int], kind: str, source: str) -> list:
         return [self._attempt(i, kind, source) for i in group]
+
+    def _finish(self, got, kind: str):
+        if isinstance(got, Exception):
+            return got
+        try:
+            return self.finish(got, kind)
+        except (AedatError, Skip) as e:
+            return e
 
     def iterate(self, todo: list[int], kind: str, source: str, threads: int):
         """Yield (i, decoded packet or the AedatError/Skip it raised) for i in `todo`, in order. With
@@ -371,22 +408,24 @@ class PacketReader:
             groups.append(cur)
         if len(groups) <= threads:          # too little to share out: decode in the calling thread
             for i in todo:
-                yield i, self._attempt(i, kind, source)
+                yield i, self._finish(self._attempt(i, kind, source), kind)
             return
-        pool = self._executor(threads)
+        workers = threads - 1
+        pool = self._executor(workers)
         queued: deque = deque()
         nxt = iter(groups)
         try:
             for g in nxt:
                 queued.append((g, pool.submit(self._attempt_group, g, kind, source)))
-                if len(queued) > threads:
+                if len(queued) > workers:
                     break
             while queued:
                 g, fut = queued.popleft()
                 h = next(nxt, None)
                 if h is not None:
                     queued.append((h, pool.submit(self._attempt_group, h, kind, source)))
-                yield from zip(g, fut.result())
+                for i, got in zip(g, fut.result()):
+                    yield i, self._finish(got, kind)
         finally:
             for _, fut in queued:
                 fut.cancel()

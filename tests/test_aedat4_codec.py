@@ -1,0 +1,134 @@
+"""ev3dgs.io.aedat4_codec (LZ4 blocks / zstd frames decoded by the C libraries straight into a buffer) against
+the lz4 and zstandard packages' own frame decoders, XXH32 against its published test vectors, and the reader's
+general path (cramjam) giving the same packets when the native path is unavailable."""
+from __future__ import annotations
+
+import struct
+import warnings
+from pathlib import Path
+
+import lz4.frame
+import numpy as np
+import pytest
+import zstandard
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ev3dgs.events import Events
+from ev3dgs.io import aedat4_codec as C
+from ev3dgs.io import aedat4_packets as P
+from ev3dgs.io.aedat4 import Aedat4Reader
+from ev3dgs.io.types import AedatError
+
+SHARED = Path("/work/shared/data/aedat/aestream_davis.aedat4")
+needs_native = pytest.mark.skipif(not (C.available(1) and C.available(3)), reason="no liblz4 / libzstd found")
+
+# compressible but not trivial: runs of a few symbols with random literals (LZ4 emits both matches and literals)
+_blobs = st.builds(lambda n, k, seed: np.random.default_rng(seed).integers(0, k, n, dtype=np.uint8).tobytes(),
+                   st.integers(0, 300_000), st.sampled_from([1, 3, 17, 256]), st.integers(0, 2**32 - 1))
+
+
+def _ref_lz4(frame: bytes):
+    try:
+        return lz4.frame.decompress(frame)
+    except RuntimeError:
+        return None
+
+
+@needs_native
+@settings(max_examples=40, deadline=None)
+@given(_blobs, st.sampled_from([lz4.frame.BLOCKSIZE_MAX64KB, lz4.frame.BLOCKSIZE_MAX256KB,
+                                lz4.frame.BLOCKSIZE_MAX1MB, lz4.frame.BLOCKSIZE_MAX4MB]),
+       st.booleans(), st.booleans(), st.sampled_from([0, 9]))
+def test_lz4_matches_lz4_frame(data, block_size, linked, store_size, level):
+    frame = lz4.frame.compress(data, block_size=block_size, block_linked=linked, store_size=store_size,
+                               compression_level=level)
+    out = np.empty(len(data) + (4 << 20), np.uint8)
+    n = C.lz4_into(frame, C.address(frame), out)
+    assert n == len(data) and bytes(out[:n]) == data
+
+
+@needs_native
+@settings(max_examples=60, deadline=None)
+@given(_blobs, st.data())
+def test_lz4_damaged_frames_never_disagree(data, draw):
+    """A damaged frame is either refused (None: the general path then reports it) or decodes to exactly what
+    LZ4's own frame decoder makes of it; nothing is written past the buffer."""
+    frame = bytearray(lz4.frame.compress(data, store_size=draw.draw(st.booleans())))
+    for _ in range(draw.draw(st.integers(1, 4))):
+        k = draw.draw(st.integers(0, len(frame) - 1))
+        frame[k] = draw.draw(st.integers(0, 255))
+    if draw.draw(st.booleans()):
+        frame = frame[:draw.draw(st.integers(0, len(frame)))]
+    frame = bytes(frame)
+    room = len(data) + 64
+    out = np.full(room + 4096, 0xA5, np.uint8)
+    n = C.lz4_into(frame, C.address(frame), out[:room])
+    assert (out[room:] == 0xA5).all()                   # the guard zone after the buffer is untouched
+    if n is not None:
+        assert bytes(out[:n]) == _ref_lz4(frame)
+
+
+@needs_native
+def test_lz4_refuses_what_it_does_not_check():
+    """Checksummed frames, a corrupt header checksum, a buffer too small, trailing bytes: None."""
+    data = struct.pack("<I", 256_000) + bytes(range(256)) * 1000     # size-prefixed, as a packet payload is
+    out = np.empty(len(data) + 100, np.uint8)
+    for kw in ({"content_checksum": True}, {"block_checksum": True}):
+        f = lz4.frame.compress(data, **kw)
+        assert C.lz4_into(f, C.address(f), out) is None
+        assert bytes(P.decompress(f, 1, 0)) == data          # the general path still reads them
+    f = bytearray(lz4.frame.compress(data, store_size=False))
+    f[6] ^= 1                                               # header checksum byte
+    assert C.lz4_into(bytes(f), C.address(bytes(f)), out) is None
+    with pytest.raises(AedatError, match="byte 9: lz4 decompression failed"):
+        P.decompress(bytes(f), 1, 9)
+    f = lz4.frame.compress(data)
+    assert C.lz4_into(f, C.address(f), out[:len(data) - 1]) is None
+    assert C.lz4_into(f + f, C.address(f + f), out) is None
+
+
+def test_xxh32_test_vectors():
+    # published XXH32 values (seed 0) and the header checksums liblz4 writes (its HC byte is (XXH32 >> 8) & 255)
+    assert C.xxh32_short(b"") == 0x02CC5D05
+    assert C.xxh32_short(b"a") == 0x550D7456
+    assert C.xxh32_short(b"abc") == 0x32D153FF
+    for size in (0, 1, 1000, 123_456):
+        f = lz4.frame.compress(bytes(size), store_size=True)
+        end = 6 + (8 if f[4] & 8 else 0)                    # FLG, BD, content size (if stored), then HC
+        assert (C.xxh32_short(f[4:end]) >> 8) & 0xFF == f[end]
+
+
+@needs_native
+@settings(max_examples=30, deadline=None)
+@given(_blobs, st.sampled_from([1, 3, 19]), st.booleans())
+def test_zstd_matches_zstandard(data, level, size_in_header):
+    frame = zstandard.ZstdCompressor(level=level, write_content_size=size_in_header).compress(data)
+    out = np.empty(len(data) + 16, np.uint8)
+    n = C.zstd_into(frame, C.address(frame), out)
+    assert n == len(data) and bytes(out[:n]) == data
+    if data:
+        assert C.zstd_into(frame, C.address(frame), out[:len(data) - 1]) is None     # too small: refused
+        bad = bytearray(frame)
+        bad[len(bad) // 2] ^= 0xFF
+        n = C.zstd_into(bytes(bad), C.address(bytes(bad)), out)
+        if n is not None:                   # zstd without checksum may still decode: as zstandard does
+            assert bytes(out[:n]) == zstandard.ZstdDecompressor().decompressobj().decompress(bytes(bad))
+
+
+@pytest.mark.skipif(not SHARED.exists(), reason="shared AEDAT sample not present")
+@pytest.mark.parametrize("threads", [1, 2])
+def test_general_path_gives_the_same_events(monkeypatch, threads):
+    """With the native path switched off (no C library found) the reader decodes with cramjam: same events."""
+    def read():
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with Aedat4Reader(SHARED, threads=threads) as r:
+                return Events.concatenate(list(r.events()))
+
+    fast = read()
+    monkeypatch.setattr(C, "available", lambda comp: False)
+    slow = read()
+    for k in "txyp":
+        assert np.array_equal(getattr(fast, k), getattr(slow, k))
+    assert len(fast) == 117_667 and int(fast.x.astype(np.int64).sum()) == 17_676_033
