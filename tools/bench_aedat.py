@@ -10,7 +10,7 @@ read). The readers run interleaved, one round after another, so that load from o
 alike; the ratio to dv-processing is taken within each round and reported as median [min, max] over rounds,
 for wall time (speed) and for CPU time (work: on a machine whose cores are busy with other work, wall time
 mostly measures waiting, and a decoding thread cannot overlap anything).
-A warm-up child loads (and the first time ever compiles) the numba kernel before timing.
+A warm-up child reads each file once first (page cache).
 
     git archive b894e45 ev3dgs | tar -x -C /tmp/prev      # optional: the reader before this work
     python tools/bench_aedat.py --events 20000000 --rounds 5 --previous /tmp/prev
@@ -121,7 +121,7 @@ def _child(reader: str, path: Path, inner: int) -> dict:
 
 
 def bench_file(label: str, path: Path, rounds: int, inner: int) -> dict:
-    _child("ours-1thread", path, 1)                       # warm-up: numba kernel cache, page cache
+    _child("ours-1thread", path, 1)                       # warm-up: page cache
     runs = {r: [] for r in READERS}
     for _ in range(rounds):
         for reader in READERS:

@@ -22,11 +22,11 @@ from .types import AedatError, AedatWarning, ImuData, RecordingReader, StreamInf
 
 __all__ = ["Aedat4Reader", "AedatWarning", "info", "MAGIC", "EVENT_DTYPE", "COMPRESSIONS", "THREADS"]
 
-# Packets decoded at once by default. Decompression and numpy's unpacking release the GIL (tools/probe_gil.py),
-# so 2 threads can overlap two packets, but only on a core nobody else is using: on a machine whose cores are
-# busy the second thread only adds work (tools/bench_aedat.py, load ~10 on 2 cores: 2 threads 0.55-0.79x
-# dv-processing, 1 thread 0.64-0.87x). THREADS = None picks 2 when the 1-minute load average leaves a core
-# idle, else 1; set an int to force.
+# Threads decoding at once by default. With 2, a worker reads and decompresses packets (GIL-free C calls) while
+# the calling thread unpacks and checks the previous ones; that only pays where a core is idle: on a machine
+# whose cores are busy the worker only adds work (tools/bench_aedat.py and tools/probe_aedat_threads.py, load
+# 6-8 on 2 cores: 2 threads took 7-30 % more CPU than 1 and no less wall time). THREADS = None picks 2 when the
+# 1-minute load average leaves a core idle, else 1; set an int to force.
 THREADS: int | None = None
 
 
@@ -45,8 +45,9 @@ class Aedat4Reader(RecordingReader):
     Every decoded packet is checked against what the file states (ev3dgs.io.checks): a corrupt packet is
     skipped, and values the file contradicts are dropped, with a warning naming the stream, packet and byte;
     with strict=True they raise AedatError instead. skip_corrupt=True/False is the older spelling of
-    strict=False/True. `threads` packets are decoded at once (default: THREADS, or default_threads(): 2 when a
-    core is idle, else 1; 1 decodes in the calling thread)."""
+    strict=False/True. `threads`: 1 decodes in the calling thread; N > 1 adds N - 1 read-ahead threads that read
+    and decompress packets while the calling thread unpacks them (default: THREADS, or default_threads(): 2 when
+    a core is idle, else 1)."""
 
     format = "aedat4"
 

@@ -1,18 +1,22 @@
 """AEDAT 4.0 packet decoding: bounded decompression into reused buffers, flatbuffer parsing of the four packet
-types, and the optional read-ahead thread pool.
+types, and the optional read-ahead thread.
 
-A packet payload is one LZ4 or zstd frame (or raw bytes) holding a size-prefixed flatbuffer. It is decompressed
-with cramjam's `decompress_into` into a per-thread scratch buffer that is reused from packet to packet (no
-allocation, no page faults and no extra copy per packet; the buffer stays in cache); a packet larger than the
-buffer takes the bounded streaming path once and the buffer grows to fit it. The Event structs are then copied
-out of that buffer in one memcpy into a block of memory that is reused once the consumer has dropped what
-was unpacked into it (t, x, y are strided views of the copy; p is computed next to it), together with the
-statistics the per-packet checks need (largest x and y, bad polarity bytes, backward time steps), so the
-checks themselves cost a few scalar comparisons on intact data. Decompression and numpy's copies and
-reductions run without the GIL, so `threads` > 1 overlaps packets on several cores (a stream of fewer than
-threads + 1 groups of GROUP_BYTES compressed bytes is decoded in the calling thread); memory stays bounded by
-threads + 1 groups of packets (GROUP_BYTES compressed bytes each, or one larger packet) in flight and one
-scratch buffer per thread.
+A packet payload is one LZ4 or zstd frame (or raw bytes) holding a size-prefixed flatbuffer. An events packet
+whose element count the FileDataTable gives is decompressed straight into a reused block sized from that count
+(aedat4_codec: one C call of the LZ4 / zstd library per packet, GIL released); any other packet into a
+per-thread scratch buffer reused from packet to packet, through cramjam when the C libraries are not found. A
+packet larger than the buffer takes the bounded streaming path once and the buffer grows to fit it. t, x, y
+are strided views of the Event structs in the block; p is computed next to them from the polarity bytes
+gathered in one strided pass, together with the statistics the per-packet checks need (largest x and y, bad
+polarity bytes, backward time steps), so the checks themselves cost a few scalar comparisons on intact data.
+
+Threads: reading and decompressing a packet (`fetch`) is GIL-free C work with a few microseconds of Python
+around it; unpacking (`finish`) is a handful of numpy calls. With threads > 1, threads - 1 workers fetch
+groups of consecutive packets (GROUP_BYTES compressed bytes each) ahead of the consumer, which unpacks and
+checks them: the two stages overlap on two cores with one GIL hand-over per packet or so. (The earlier pool
+ran whole decodes, numpy passes included, on two workers plus the consumer: three threads for two cores,
+handing the GIL over at every numpy call.) Memory stays bounded by `threads` groups in flight and one read and
+one scratch buffer per thread.
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ import lz4.frame
 import numpy as np
 import zstandard
 
+from . import aedat4_codec as native
 from .flatbuf import FlatbufError, root, table_vector
 from .types import AedatError, FrameData
 
@@ -43,6 +48,7 @@ _SCRATCH0 = 1 << 20                 # first size of a thread's scratch buffer (g
 GROUP_BYTES = 256 << 10             # thread pool: consecutive packets decoded by one task, in compressed bytes
 _CHUNK = 8 << 20
 HDR = struct.Struct("<iI")
+_U32 = struct.Struct("<I")
 IMU_FIELDS = {"t": (0, "<i8"), "temp": (1, "<f4"), "ax": (2, "<f4"), "ay": (3, "<f4"), "az": (4, "<f4"),
               "gx": (5, "<f4"), "gy": (6, "<f4"), "gz": (7, "<f4")}
 TRIG_FIELDS = {"t": (0, "<i8"), "kind": (1, "i1")}
@@ -97,14 +103,21 @@ def _inflate_stream(data, comp: int, at: int) -> bytearray:
 _local = threading.local()
 
 
-def decompress(data, comp: int, at: int, out: np.ndarray | None = None) -> np.ndarray:
+def decompress(data, comp: int, at: int, out: np.ndarray | None = None, data_addr: int | None = None,
+               out_addr: int | None = None) -> np.ndarray:
     """The decompressed payload of one packet as a uint8 array. For compressed packets it is a view of `out`
     when the payload fits there, else of this thread's scratch buffer, valid only until this thread's next call
-    (copy what must outlive it)."""
+    (copy what must outlive it). data_addr / out_addr: the buffers' addresses when the caller knows them
+    (saves looking them up per packet)."""
     if comp == 0:
         return np.frombuffer(data, np.uint8)
+    fast = native.available(comp)
+    if out is not None and fast:
+        n = native.decompress_into(data, comp, out, data_addr, out_addr)
+        if n is not None:
+            return _checked(out, n, at)
     codec = cramjam.lz4 if comp in (1, 2) else cramjam.zstd
-    if out is not None:
+    if out is not None and not fast:
         try:
             n = codec.decompress_into(data, out)
         except cramjam.DecompressionError:
@@ -114,6 +127,10 @@ def decompress(data, comp: int, at: int, out: np.ndarray | None = None) -> np.nd
     buf = getattr(_local, "buf", None)
     if buf is None:
         buf = _local.buf = np.empty(_SCRATCH0, np.uint8)
+    if fast:
+        n = native.decompress_into(data, comp, buf, data_addr)
+        if n is not None:
+            return _checked(buf, n, at)
     try:
         n = codec.decompress_into(data, buf)
     except cramjam.DecompressionError as e:
@@ -133,7 +150,7 @@ def decompress(data, comp: int, at: int, out: np.ndarray | None = None) -> np.nd
 def _checked(buf: np.ndarray, n: int, at: int) -> np.ndarray:
     if n < 4:
         raise AedatError(f"byte {at}: packet decompresses to {n} bytes, too short for a flatbuffer")
-    total = 4 + int(buf[:4].view("<u4")[0])
+    total = 4 + _U32.unpack_from(buf)[0]
     if n < total:
         raise AedatError(f"byte {at}: packet decompresses to {n} bytes but its flatbuffer size prefix says {total}")
     return buf[:n]
@@ -168,6 +185,7 @@ class EventArrays:
 
 
 _I8, _U2, _S8 = np.dtype("<i8"), np.dtype("<u2"), np.dtype(np.int8)
+_max = np.maximum.reduce                    # ndarray.max() adds ~1 us of Python wrapper per call
 
 
 def _fresh(nbytes: int) -> np.ndarray:
@@ -192,17 +210,19 @@ def decode_events(payload, at: int, alloc=_fresh, pol_out: np.ndarray | None = N
         b[:] = np.frombuffer(body, np.uint8, count=size, offset=start)
     u16 = b.view(_U2)
     t, x, y = b.view(_I8)[0::2], u16[4::8], u16[5::8]
-    pb = b[12::16]                                      # stored polarity byte: 0 (OFF) or 1 (ON)
-    p8 = pb.view(_S8)
-    pol = np.add(p8, p8, out=mem[size:].view(_S8))
-    pol -= 1                                            # 0 -> -1, 1 -> +1
+    q = mem[size:size + n]                  # the stored polarity bytes (0 OFF, 1 ON), gathered contiguously:
+    np.copyto(q, b[12::16])                 # the one strided pass for polarity; the rest is contiguous
     bad_p = 0
-    if n and pb.max() > 1:
-        bad = pb > 1
+    if n and _max(q) > 1:
+        bad = q > 1
         bad_p = int(np.count_nonzero(bad))
+    pol = q.view(_S8)
+    np.add(pol, pol, out=pol)
+    pol -= 1                                # 0 -> -1, 1 -> +1
+    if bad_p:
         pol[bad] = -128
-    back = int(np.count_nonzero(t[1:] < t[:-1])) if n > 1 else 0
-    return EventArrays(t, x, y, pol, int(x.max()) if n else 0, int(y.max()) if n else 0, bad_p, back)
+    back = int(np.count_nonzero(np.less(t[1:], t[:-1]))) if n > 1 else 0
+    return EventArrays(t, x, y, pol, int(_max(x)) if n else 0, int(_max(y)) if n else 0, bad_p, back)
 
 
 class BlockPool:
@@ -216,19 +236,26 @@ class BlockPool:
 
     def __init__(self, keep: int) -> None:
         self._blocks: list[np.ndarray] = []
+        self._addr: list[int] = []
         self._keep = keep
         self._lock = threading.Lock()
 
     def __call__(self, nbytes: int) -> np.ndarray:
+        return self.claim(nbytes)[0]
+
+    def claim(self, nbytes: int) -> tuple[np.ndarray, int]:
+        """A block's first nbytes (a view) and its address."""
         with self._lock:                    # a block found free is claimed (viewed) before the lock is let go
             blocks = self._blocks
             for k in range(len(blocks)):
                 if blocks[k].size >= nbytes and sys.getrefcount(blocks[k]) == 2:   # the list's + the argument's
-                    return blocks[k][:nbytes]
+                    return blocks[k][:nbytes], self._addr[k]
             blk = np.empty(max(self.MIN_BLOCK, 1 << (nbytes - 1).bit_length()), np.uint8)
+            addr = native.address(blk)
             if len(blocks) < self._keep:
                 blocks.append(blk)
-            return blk[:nbytes]
+                self._addr.append(addr)
+            return blk[:nbytes], addr
 
 
 def decode_frame(payload, at: int, source: str) -> FrameData:
@@ -282,6 +309,7 @@ class PacketReader:
                  elements: np.ndarray | None = None) -> None:
         self.f, self.off, self.size, self.sid, self.comp, self.path = f, off, size, sid, compression, path
         self.elements = elements            # per packet, from the FileDataTable (None without one)
+        self._where = list(zip(off.tolist(), size.tolist(), sid.tolist()))    # Python ints: cheap per packet
         self.blocks = BlockPool(keep=16)
         self._pool: ThreadPoolExecutor | None = None      # kept while the reader is open: its threads keep
         self._pool_threads = 0                              # their grown scratch buffers from read to read
@@ -301,12 +329,13 @@ class PacketReader:
     def raw(self, i: int) -> tuple[memoryview, int]:
         """Packet i's header and payload as read from the file, in this thread's reused read buffer (valid
         until this thread's next call), and the payload's offset."""
-        off, n, sid = int(self.off[i]), int(self.size[i]), int(self.sid[i])
+        off, n, sid = self._where[i]
         if self.f.closed:
             raise AedatError(f"{self.path}: the reader is closed")
         buf = getattr(_local, "raw", None)
         if buf is None or len(buf) < n + 8:
             buf = _local.raw = bytearray(max(_SCRATCH0, 1 << (n + 7).bit_length()))
+            _local.raw_addr = native.address(buf)
         mv = memoryview(buf)[:n + 8]
         got = os.preadv(self.f.fileno(), [mv], off - 8)
         if got < n + 8:
@@ -323,20 +352,23 @@ class PacketReader:
         raw, off = self.raw(i)
         return bytes(decompress(memoryview(raw)[8:], self.comp, off))
 
-    def decode(self, i: int, kind: str, source: str = ""):
-        """Packet i decoded as `kind`: EventArrays, FrameData or a dict of sample arrays."""
+    def fetch(self, i: int, kind: str, source: str = ""):
+        """Stage 1 of decoding packet i (safe in a worker thread): read and decompress it. An events packet with
+        a FileDataTable count is decompressed straight into a reused block sized from that count (a
+        size-prefixed EVTS flatbuffer is 16 bytes per event plus < 64) with room for its polarity after it, and
+        returned as (payload, polarity memory) for `finish`; anything else is decoded completely (EventArrays,
+        FrameData or a dict of sample arrays)."""
         raw, off = self.raw(i)
         try:
             if kind == "events":
                 if self.comp and self.elements is not None and 17 * int(self.elements[i]) < _cap(raw) // 2:
-                    # decompress straight into a reused block sized from the table's element count (a size-
-                    # prefixed EVTS flatbuffer is 16 bytes per event plus < 64), pol after it: no memcpy
                     k = int(self.elements[i])
                     need = 16 * k + 64
-                    mem = self.blocks(need + k)
-                    payload = decompress(memoryview(raw)[8:], self.comp, off, mem[:need])
-                    inplace = np.shares_memory(payload, mem)
-                    return decode_events(payload, off, self.blocks, mem[need:] if inplace else None)
+                    mem, addr = self.blocks.claim(need + k)
+                    payload = decompress(raw[8:], self.comp, off, mem[:need], _local.raw_addr + 8, addr)
+                    if np.shares_memory(payload, mem):
+                        return payload, mem[need:], off
+                    return decode_events(payload, off, self.blocks)
                 return decode_events(decompress(memoryview(raw)[8:], self.comp, off), off, self.blocks)
             payload = decompress(memoryview(raw)[8:], self.comp, off)
             if kind == "frames":
@@ -345,21 +377,43 @@ class PacketReader:
         except FlatbufError as e:
             raise AedatError(f"byte {off}: corrupt {kind} packet ({e})") from None
 
+    def finish(self, got, kind: str):
+        """Stage 2 (in the consuming thread): unpack what `fetch` left decompressed in place."""
+        if type(got) is not tuple:
+            return got
+        payload, pol, off = got
+        try:
+            return decode_events(payload, off, self.blocks, pol)   # a wrong table count: copied to a block
+        except FlatbufError as e:
+            raise AedatError(f"byte {off}: corrupt {kind} packet ({e})") from None
+
+    def decode(self, i: int, kind: str, source: str = ""):
+        """Packet i decoded as `kind`: EventArrays, FrameData or a dict of sample arrays."""
+        return self.finish(self.fetch(i, kind, source), kind)
+
     def _attempt(self, i: int, kind: str, source: str):
         try:
-            return self.decode(i, kind, source)
+            return self.fetch(i, kind, source)
         except (AedatError, Skip) as e:
             return e
 
     def _attempt_group(self, group: list[int], kind: str, source: str) -> list:
         return [self._attempt(i, kind, source) for i in group]
 
+    def _finish(self, got, kind: str):
+        if isinstance(got, Exception):
+            return got
+        try:
+            return self.finish(got, kind)
+        except (AedatError, Skip) as e:
+            return e
+
     def iterate(self, todo: list[int], kind: str, source: str, threads: int):
         """Yield (i, decoded packet or the AedatError/Skip it raised) for i in `todo`, in order. With
-        threads > 1 a pool decodes groups of consecutive packets (GROUP_BYTES compressed bytes at least, so
-        that small packets do not pay a task each) up to 2 x threads groups ahead of the consumer; errors still
-        surface in order, and abandoning the iteration cancels what was queued. At most threads + 1 groups are
-        decoded or waiting at any time."""
+        threads > 1, threads - 1 workers fetch (read and decompress) groups of consecutive packets (GROUP_BYTES
+        compressed bytes at least, so that small packets do not pay a task each) at most `threads` groups ahead,
+        and the calling thread unpacks them; errors still surface in order, and abandoning the iteration cancels
+        what was queued. A stream of at most `threads` groups is decoded in the calling thread."""
         groups, cur, acc = [], [], 0
         for i in (todo if threads > 1 else ()):
             cur.append(i)
@@ -371,22 +425,24 @@ class PacketReader:
             groups.append(cur)
         if len(groups) <= threads:          # too little to share out: decode in the calling thread
             for i in todo:
-                yield i, self._attempt(i, kind, source)
+                yield i, self._finish(self._attempt(i, kind, source), kind)
             return
-        pool = self._executor(threads)
+        workers = threads - 1
+        pool = self._executor(workers)
         queued: deque = deque()
         nxt = iter(groups)
         try:
             for g in nxt:
                 queued.append((g, pool.submit(self._attempt_group, g, kind, source)))
-                if len(queued) > threads:
+                if len(queued) > workers:
                     break
             while queued:
                 g, fut = queued.popleft()
                 h = next(nxt, None)
                 if h is not None:
                     queued.append((h, pool.submit(self._attempt_group, h, kind, source)))
-                yield from zip(g, fut.result())
+                for i, got in zip(g, fut.result()):
+                    yield i, self._finish(got, kind)
         finally:
             for _, fut in queued:
                 fut.cancel()

@@ -179,11 +179,14 @@ def _shared_vtable(u8: np.ndarray, tpos: np.ndarray, vt: int, count: int, fields
     if int(tpos.max()) + t_size > n:
         i = int(np.argmax(tpos + t_size > n))
         raise FlatbufError(int(tpos[i]), f"element {i}: table of {t_size} bytes runs past the buffer ({n} bytes)")
+    rows = u8[tpos[:, None] + np.arange(t_size, dtype=np.int64)]     # every table's bytes: one gather
     out = {}
     for name, spec in fields.items():
         slot, dt, delta = spec[0], np.dtype(spec[1]), (spec[2] if len(spec) > 2 else 0)
-        off = int(np.frombuffer(u8, "<u2", count=1, offset=vt + 4 + 2 * slot)[0]) if vt_size >= 6 + 2 * slot else 0
+        off = _U16.unpack_from(u8, vt + 4 + 2 * slot)[0] if vt_size >= 6 + 2 * slot else 0
         if off and (off < 4 or off + delta + dt.itemsize > t_size):
             raise FlatbufError(int(tpos[0]), f"element 0: field {slot} offset {off} outside its table")
-        out[name] = gather(u8, tpos + (off + delta), dt) if off else np.zeros(count, dt)
+        at = off + delta
+        out[name] = (np.ascontiguousarray(rows[:, at:at + dt.itemsize]).view(dt).reshape(count) if off
+                     else np.zeros(count, dt))
     return out
