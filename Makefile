@@ -15,6 +15,8 @@ $(STAMP): pyproject.toml
 	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
 	$(BIN)/pip install torch==2.13.0
 	$(BIN)/pip install -e '.[dev]'
+	# the reference LPIPS package, for tests/test_lpips.py only; --no-deps: its torchvision would replace our torch
+	$(BIN)/pip install --no-deps lpips==0.1.4
 	touch $(STAMP)
 
 test: setup

@@ -337,3 +337,77 @@ def test_eval_refuses_images_too_small_for_the_network(tmp_path_factory, alex_fi
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "at least 31x31" in err[0] and "40x30" in err[0], err
     assert evaluate(run, write_images=False)["lpips"] is None  # without weights the same run evaluates
+
+
+def _reference_lpips_module():
+    """The `lpips` package (0.1.4, installed by `make setup` with --no-deps: its own torchvision would replace
+    our torch) imported with a stand-in for ``torchvision.models`` that builds AlexNet's ``features`` layer
+    layout from FEATURES above (no weights: nothing can be downloaded here). Everything else (scaling layer,
+    normalisation, lin layers, spatial average, the shipped v0.1 lin weights) is the package's own."""
+    import importlib.util
+    import sys
+    import types
+
+    if importlib.util.find_spec("lpips") is None:
+        pytest.skip("the reference lpips package is not installed (make setup installs it)")
+    layers = []
+    for op in FEATURES["alex"]:
+        if op[0] == "C":
+            layers.append(torch.nn.Conv2d(op[1], op[2], op[3], stride=op[4], padding=op[5]))
+        elif op[0] == "R":
+            layers.append(torch.nn.ReLU(inplace=False))
+        else:
+            layers.append(torch.nn.MaxPool2d(op[1], op[2]))
+
+    class _AlexNet(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.features = torch.nn.Sequential(*layers,
+                                                torch.nn.MaxPool2d(3, 2))
+
+    models = types.ModuleType("torchvision.models")
+    models.alexnet = lambda *a, **k: _AlexNet()
+    models.AlexNet_Weights = types.SimpleNamespace(IMAGENET1K_V1=None)
+    tv = types.ModuleType("torchvision")
+    tv.models = models
+    saved = {k: sys.modules.get(k) for k in ("torchvision", "torchvision.models")}
+    sys.modules.update({"torchvision": tv, "torchvision.models": models})
+    try:
+        for k in [k for k in sys.modules if k == "lpips" or k.startswith("lpips.")]:
+            del sys.modules[k]
+        import lpips
+        torch.manual_seed(0)
+        return lpips.LPIPS(net="alex", version="0.1", pretrained=True, pnet_rand=True, verbose=False).eval()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                sys.modules.pop(k, None)
+            else:
+                sys.modules[k] = v
+
+
+def test_equals_the_lpips_package_with_its_shipped_lin_weights(tmp_path):
+    """A second, independent implementation: the reference package's own forward pass, its shipped v0.1 lin
+    weights and a random (He-scaled) AlexNet trunk, saved with its own state_dict() and read by load_lpips.
+    Both run in float64 on the same arithmetic (conv, relu, max pool, normalisation, mean), summed in a
+    different order: the difference is a few ulps of the ~1e-2 distance, so 1e-12 absolute has margins of 1e3."""
+    ref = _reference_lpips_module().double()
+    g = torch.Generator().manual_seed(1)
+    for m in ref.net.modules():
+        if isinstance(m, torch.nn.Conv2d):
+            fan = m.weight[0].numel()
+            m.weight.data = torch.randn(m.weight.shape, generator=g, dtype=torch.float64) * (2 / fan) ** .5
+            m.bias.data = 0.1 * torch.randn(m.bias.shape, generator=g, dtype=torch.float64)
+    path = tmp_path / "lpips_alex.pth"
+    torch.save({k: v.float() for k, v in ref.state_dict().items()}, path)
+    ref = ref.float().double()                     # the same float32-rounded weights on both sides
+    ours = load_lpips(path, dtype=torch.float64)
+    rng = np.random.default_rng(2)
+    for h, w in [(31, 31), (72, 96), (130, 173)]:
+        a = rng.random((h, w, 3))
+        b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+        t = [torch.from_numpy(x).permute(2, 0, 1)[None] for x in (a, b)]
+        with torch.no_grad():
+            want = float(ref(*t, normalize=True))
+        assert want > 0
+        assert abs(ours.distance(a, b) - want) <= 1e-12
