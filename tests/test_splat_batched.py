@@ -49,6 +49,9 @@ def assert_close(x, y, atol=1e-10, what=""):
     x = torch.zeros_like(y) if x is None else x
     y = torch.zeros_like(x) if y is None else y
     assert torch.isfinite(x).all() and torch.isfinite(y).all(), what
+    assert x.shape == y.shape, (what, x.shape, y.shape)
+    if x.numel() == 0:                 # e.g. no Gaussian in front of any camera: nothing to compare
+        return
     scale = max(float(x.abs().max()) if x.numel() else 0.0, 1.0)
     assert float((x - y).abs().max()) <= atol * scale, (what, float((x - y).abs().max()))
 
