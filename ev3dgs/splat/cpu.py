@@ -32,8 +32,6 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from .expneg import exp_neg_reduced, squarings
-
 TILE = 16
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
@@ -88,15 +86,15 @@ def _row_span(ok, a, b, det, s, mx, dy, bx0, bx1):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _tile16(tile, tiles_x, width, height, like):
-    """Origin, size and pixel-centre coordinates (16 each, in like's dtype, so float32 maths stays float32;
-    an edge tile's coordinates run on past the image, its padding pixels are never used) of a tile."""
+def _tile(tile, tiles_x, width, height, like):
+    """Origin, size and pixel-centre coordinates (in like's dtype, so float32 maths stays float32) of a tile."""
     x0, y0 = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
     w, h = min(TILE, width - x0), min(TILE, height - y0)
-    xs = np.empty(TILE, like.dtype)
-    ys = np.empty(TILE, like.dtype)
-    for i in range(TILE):
+    xs = np.empty(w, like.dtype)
+    ys = np.empty(h, like.dtype)
+    for i in range(w):
         xs[i] = x0 + i
+    for i in range(h):
         ys[i] = y0 + i
     return x0, y0, w, h, xs, ys
 
@@ -156,36 +154,25 @@ def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
 def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
              tiles_x, image, t_final, last, consts):
     """All cameras at once: means2d (C,N,2), conics (C,N,3), colors (C,N,D), radii (C,N); global tile
-    c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W).
-
-    Per tile the pixel state lives in 16x16 buffers (padding pixels of edge tiles start done); per Gaussian
-    and row of its box, all 16 pixels of the tile row are evaluated with masks instead of branches (fixed
-    trip count, no data-dependent branch, exp as a polynomial: LLVM vectorises these loops), and a pixel
-    only changes where the scalar rules would change it (mask: inside the row's span, not done, sigma in
-    [0, smax], alpha >= 1/255, not stopping)."""
+    c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W)."""
     D = colors.shape[2]
     # consts = (0.5, 1, ALPHA_MAX, ALPHA_MIN, T_MIN) in the input dtype: with float32 inputs the maths stays
     # float32 (numba would promote to float64 on any Python float literal)
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
-    zero = half - half
     n_tiles = tiles_x * (-(-height // TILE))
     for i in prange(work.shape[0]):
         gt = work[i]
         cam, tile = gt // n_tiles, gt % n_tiles
-        x0, y0, w, h, xs, ys = _tile16(tile, tiles_x, width, height, image)
-        T = np.ones(TILE * TILE, image.dtype)
-        Cb = np.zeros((D, TILE * TILE), image.dtype)
-        stop = np.zeros(TILE * TILE, np.int64)
-        act = np.zeros(TILE * TILE, np.bool_)
-        for p in range(w * h):
-            act[(p // w) * TILE + p % w] = True
-        e64 = np.empty(TILE, np.float64)
-        e = np.empty(TILE, image.dtype)
-        wrow = np.empty(TILE, image.dtype)
+        x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, image)
+        P = w * h
+        T = np.ones(P, image.dtype)
+        C = np.zeros((P, D), image.dtype)
+        stop = np.zeros(P, np.int64)
+        done = np.zeros(P, np.bool_)
         col = np.empty(D, image.dtype)
         n_done = 0
-        P = w * h
-        for k in range(offsets[gt], offsets[gt + 1]):
+        start, end = offsets[gt], offsets[gt + 1]
+        for k in range(start, end):
             if n_done == P:
                 break
             g = ids[k]
@@ -198,170 +185,129 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
             # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
             bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
             ok, det, s = _span_params(a, b, c, smax)
-            m_sq = squarings(smax)
-            scale = 0.5 ** m_sq
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
-                if rx0 > rx1:
-                    continue
-                lo, hi = rx0 - x0, rx1 - x0
-                base = (py - y0) * TILE
-                for j in range(TILE):
-                    dx = xs[j] - mx
+                for px in range(rx0, rx1 + 1):
+                    p = (py - y0) * w + (px - x0)
+                    if done[p]:
+                        continue
+                    dx = xs[px - x0] - mx
                     sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    inside = (j >= lo) & (j <= hi) & (sigma >= zero) & (sigma <= smax)
-                    e64[j] = exp_neg_reduced(sigma if inside else zero, scale)
-                for _ in range(m_sq):
-                    for j in range(TILE):
-                        e64[j] = e64[j] * e64[j]
-                for j in range(TILE):
-                    e[j] = e64[j]  # rounded once to the input dtype
-                nd = 0
-                for j in range(TILE):
-                    p = base + j
-                    dx = xs[j] - mx
-                    sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    alpha = min(amax, o * e[j])
-                    valid = act[p] & (j >= lo) & (j <= hi) & (sigma >= zero) & (sigma <= smax) & (alpha >= amin)
-                    Tp = T[p]
-                    nT = Tp * (one - alpha)
-                    term = valid & (nT < tmin)
-                    comp = valid & (not (nT < tmin))
-                    wrow[j] = alpha * Tp if comp else zero
-                    T[p] = nT if comp else Tp
-                    stop[p] = k + 1 if comp else stop[p]
-                    act[p] = act[p] & (not term)
-                    nd += 1 if term else 0
-                n_done += nd
-                for d in range(D):
-                    cd = col[d]
-                    for j in range(TILE):
-                        Cb[d, base + j] += cd * wrow[j]
+                    if sigma < 0 or sigma > smax:  # beyond smax: alpha < 1/255, no exp needed
+                        continue
+                    alpha = min(amax, o * np.exp(-sigma))
+                    if alpha < amin:
+                        continue
+                    nT = T[p] * (one - alpha)
+                    if nT < tmin:
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    wgt = alpha * T[p]
+                    for d in range(D):
+                        C[p, d] += col[d] * wgt
+                    T[p] = nT
+                    stop[p] = k + 1
         for p in range(P):
             px, py = x0 + p % w, y0 + p // w
-            q = (p // w) * TILE + p % w
             for d in range(D):
-                image[cam, py, px, d] = Cb[d, q] + T[q] * background[d]
-            t_final[cam, py, px] = T[q]
-            last[cam, py, px] = stop[q]
+                image[cam, py, px, d] = C[p, d] + T[p] * background[d]
+            t_final[cam, py, px] = T[p]
+            last[cam, py, px] = stop[p]
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
               tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts):
-    """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...].
-
-    Same 16x16 buffers and masked 16-pixel rows as the forward (padding pixels have stop 0: never used).
-    The per-Gaussian sums run in 16 lane accumulators (lane j sums column j's pixels, rows in order), added
-    up in lane order at the end of the Gaussian: a fixed order, so the result does not depend on the
-    machine's vector width or the thread count."""
+    """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...]."""
     D = colors.shape[2]
     half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
     zero = half - half
     n_tiles = tiles_x * (-(-height // TILE))
-    NP = TILE * TILE
     for i in prange(work.shape[0]):
         gt = work[i]
         cam, tile = gt // n_tiles, gt % n_tiles
-        x0, y0, w, h, xs, ys = _tile16(tile, tiles_x, width, height, t_final)
-        dt = t_final.dtype
-        T = np.ones(NP, dt)
-        S = np.zeros((D, NP), dt)
-        G = np.zeros((D, NP), dt)
-        GA = np.zeros(NP, dt)
-        TF = np.zeros(NP, dt)
-        stop = np.zeros(NP, np.int64)
-        col = np.empty(D, dt)
-        e64 = np.empty(TILE, np.float64)
-        e = np.empty(TILE, dt)
-        cg = np.empty(TILE, dt)
-        sg = np.empty(TILE, dt)
-        wrow = np.empty(TILE, dt)
-        acc = np.empty((6 + D, TILE), dt)  # lane accumulators: mx, my, a, b, c, o, colour...
+        x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
+        P = w * h
+        T = np.empty(P, t_final.dtype)
+        S = np.empty((P, D), t_final.dtype)
+        G = np.empty((P, D), t_final.dtype)
+        GA = np.empty(P, t_final.dtype)
+        TF = np.empty(P, t_final.dtype)
+        stop = np.empty(P, np.int64)
+        gcol = np.empty(D, t_final.dtype)
+        col = np.empty(D, t_final.dtype)
         kmax = offsets[gt]
-        for p in range(w * h):
+        for p in range(P):
             px, py = x0 + p % w, y0 + p // w
-            q = (p // w) * TILE + p % w
-            T[q] = t_final[cam, py, px]
-            TF[q] = T[q]
-            stop[q] = last[cam, py, px]
-            kmax = max(kmax, stop[q])
-            GA[q] = grad_alpha[cam, py, px]
+            T[p] = t_final[cam, py, px]
+            TF[p] = T[p]
+            stop[p] = last[cam, py, px]
+            kmax = max(kmax, stop[p])
+            GA[p] = grad_alpha[cam, py, px]
             for d in range(D):
-                G[d, q] = grad_image[cam, py, px, d]
-                S[d, q] = T[q] * background[d]
+                G[p, d] = grad_image[cam, py, px, d]
+                S[p, d] = T[p] * background[d]
         for k in range(kmax - 1, offsets[gt] - 1, -1):
             g = ids[k]
             mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
             a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
             o = opacities[g]
+            gmx = gmy = ga = gb = gc = go = zero
             for d in range(D):
+                gcol[d] = zero
                 col[d] = colors[cam, g, d]
             smax = sigma_max[g]
-            m_sq = squarings(smax)
-            scale = 0.5 ** m_sq
-            acc[:, :] = zero
             bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
             ok, det, s = _span_params(a, b, c, smax)
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
-                if rx0 > rx1:
-                    continue
-                lo, hi = rx0 - x0, rx1 - x0
-                base = (py - y0) * TILE
-                for j in range(TILE):
-                    dx = xs[j] - mx
+                for px in range(rx0, rx1 + 1):
+                    p = (py - y0) * w + (px - x0)
+                    if k >= stop[p]:
+                        continue
+                    dx = xs[px - x0] - mx
                     sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    inside = (j >= lo) & (j <= hi) & (not (sigma < zero)) & (not (sigma > smax))
-                    e64[j] = exp_neg_reduced(sigma if inside else zero, scale)
-                for _ in range(m_sq):
-                    for j in range(TILE):
-                        e64[j] = e64[j] * e64[j]
-                for j in range(TILE):
-                    e[j] = e64[j]
-                    cg[j] = zero
-                    sg[j] = zero
-                for d in range(D):  # colour . G and S . G, summed over d in order as the scalar rules do
-                    cd = col[d]
-                    for j in range(TILE):
-                        cg[j] += cd * G[d, base + j]
-                        sg[j] += S[d, base + j] * G[d, base + j]
-                for j in range(TILE):
-                    p = base + j
-                    dx = xs[j] - mx
-                    sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    raw = o * e[j]
+                    if sigma < 0 or sigma > smax:
+                        continue
+                    e = np.exp(-sigma)
+                    raw = o * e
                     alpha = min(amax, raw)
-                    valid = ((k < stop[p]) & (j >= lo) & (j <= hi) & (not (sigma < zero)) & (not (sigma > smax))
-                             & (not (alpha < amin)))
-                    al = alpha if valid else zero
-                    inv = one / (one - al)       # 1 - alpha >= 0.01
+                    if alpha < amin:
+                        continue
+                    inv = one / (one - alpha)    # 1 - alpha >= 0.01
                     Ti = T[p] * inv              # transmittance in front of this Gaussian
-                    wgt = al * Ti
+                    wgt = alpha * Ti
+                    cg = zero
+                    sg = zero
+                    for d in range(D):
+                        gcol[d] += wgt * G[p, d]
+                        cg += col[d] * G[p, d]
+                        sg += S[p, d] * G[p, d]
                     # dL/dalpha: own colour, everything behind (S, incl. background), the alpha output
-                    d_alpha = Ti * cg[j] - (sg[j] - GA[p] * TF[p]) * inv
-                    T[p] = Ti if valid else T[p]
-                    wrow[j] = wgt
-                    foot = valid & (not (raw > amax))  # clamped: no gradient to opacity or the footprint
-                    d_sigma = -d_alpha * alpha if foot else zero
-                    acc[5, j] += d_alpha * e[j] if foot else zero
-                    acc[0, j] -= d_sigma * (a * dx + b * dy)
-                    acc[1, j] -= d_sigma * (c * dy + b * dx)
-                    acc[2, j] += d_sigma * half * dx * dx
-                    acc[3, j] += d_sigma * dx * dy
-                    acc[4, j] += d_sigma * half * dy * dy
-                for d in range(D):
-                    cd = col[d]
-                    for j in range(TILE):
-                        acc[6 + d, j] += wrow[j] * G[d, base + j]
-                        S[d, base + j] += cd * wrow[j]
-            for q in range(6 + D):
-                tot = zero
-                for j in range(TILE):
-                    tot += acc[q, j]
-                per_pair[k, q] += tot
+                    d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
+                    for d in range(D):
+                        S[p, d] += col[d] * wgt
+                    T[p] = Ti
+                    if raw > amax:              # clamped: no gradient to opacity or the footprint
+                        continue
+                    go += d_alpha * e
+                    d_sigma = -d_alpha * alpha
+                    gmx -= d_sigma * (a * dx + b * dy)
+                    gmy -= d_sigma * (c * dy + b * dx)
+                    ga += d_sigma * half * dx * dx
+                    gb += d_sigma * dx * dy
+                    gc += d_sigma * half * dy * dy
+            for d in range(D):
+                per_pair[k, 6 + d] = gcol[d]
+            per_pair[k, 0] += gmx
+            per_pair[k, 1] += gmy
+            per_pair[k, 2] += ga
+            per_pair[k, 3] += gb
+            per_pair[k, 4] += gc
+            per_pair[k, 5] += go
 
 
 @njit(cache=True, nogil=True, parallel=True)
