@@ -236,3 +236,6 @@ def test_raster_benchmark_script(tmp_path):
     rows = json.loads((tmp_path / "r.json").read_text())["rows"]
     assert {r["backend"] for r in rows} >= {"reference", "cpu"}
     assert all(r["max_abs_diff"] <= 1e-4 and r["gaussians"] == 10_000 and r["width"] == 200 for r in rows)
+    # both clocks recorded; a fwd+bwd of 10k Gaussians takes some CPU time, and one thread cannot use more
+    # CPU than wall time (small slack: the two clocks are read at slightly different instants)
+    assert all(0 < r["cpu_ms"] <= r["ms"] * 1.05 + 1.0 for r in rows)
