@@ -145,69 +145,30 @@ def errors(est_mid, true_mid, K, bounds) -> dict:
     return e
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer steps and one refinement setting (default: off)")
-    ap.add_argument("--scene", help="scene .h5 with /train/sharp (default: simulate the quick lego at --size)")
-    ap.add_argument("--size", default="64x48", help="image size of the simulated scene (default %(default)s)")
-    ap.add_argument("--views", type=int, default=8, help="training views of the simulated scene (default 8)")
-    ap.add_argument("--fov", type=float, help="horizontal field of view of the simulated scene, degrees "
-                                              "(default: the scene's, 40)")
-    ap.add_argument("--radius", type=float, help="camera distance from the origin in the simulated scene "
-                                                 "(default: the scene's, 4)")
-    ap.add_argument("--iterations", type=int, help="training steps (default 1500, --quick 500)")
-    ap.add_argument("--rot-deg", type=float, default=1.0, help="rotation error per view, degrees (default 1)")
-    ap.add_argument("--trans-frac", type=float, default=0.02,
-                    help="translation error per view, fraction of the camera distance (default 0.02)")
-    ap.add_argument("--pose-lr", type=float, nargs="+", default=None,
-                    help="refinement learning rates to run (default 1e-3 3e-3; --quick 3e-3)")
-    ap.add_argument("--seed", type=int, default=0, help="perturbation and training seed (default 0)")
-    ap.add_argument("--json", default="tools/results/study_refine.json", help="results (default %(default)s)")
-    ap.add_argument("--plot", default="tools/results/study_refine.png", help="figure (default %(default)s)")
-    ap.add_argument("--keep", help="folder to keep the scenes and runs in (default: a temporary one)")
-    ap.add_argument("--step-cost", action="store_true",
-                    help="also time training steps with and without refinement, interleaved in one process "
-                         "(default: off)")
-    ap.add_argument("--reuse", action="store_true",
-                    help="with --keep: evaluate finished runs found there (same settings) instead of training "
-                         "them again (default: off)")
-    args = ap.parse_args(argv)
-    iterations = args.iterations or (500 if args.quick else 1500)
-    lrs = args.pose_lr or ([3e-3] if args.quick else [1e-3, 3e-3])
-    W, H = (int(x) for x in args.size.split("x"))
-    torch.set_num_threads(1)
-    tmp = None if args.keep else tempfile.TemporaryDirectory()
-    d = Path(args.keep or tmp.name)
-    d.mkdir(parents=True, exist_ok=True)
-    t_all = time.perf_counter()
-    scene = args.scene
-    if scene is None:
-        from ev3dgs.demo import make_scene
-
-        scene = str(make_scene(d / "scene", quiet=True, width=W, height=H, views=args.views, test_views=3,
-                               fov_deg=args.fov, radius=args.radius))
-    pert = d / "perturbed.h5"
-    truth = perturb_scene(scene, pert, args.rot_deg, args.trans_frac, args.seed)
-    base = TrainConfig(scene=scene, iterations=iterations, init_points=5000, seed=args.seed, device="cpu",
+def study_one(args, scene: str, d: Path, seed: int, iterations: int, lrs: list[float]) -> dict:
+    """One perturbation + training seed: perturb, train the runs, evaluate; the per-seed JSON block."""
+    pert = d / f"perturbed_s{seed}.h5"
+    truth = perturb_scene(scene, pert, args.rot_deg, args.trans_frac, seed)
+    base = TrainConfig(scene=scene, iterations=iterations, init_points=5000, seed=seed, device="cpu",
                        backend="cpu", checkpoint_every=10 ** 6)
     sc0 = schema.read(scene)
     K0 = np.asarray(sc0.camera.K)
     bounds = np.asarray(sc0.bounds) if sc0.bounds is not None else np.array([[-1.0] * 3, [1.0] * 3])
     before = errors(truth["perturbed_mid"], truth["true_mid"], K0, bounds)
-    runs = {"true poses": base, "perturbed": replace(base, scene=str(pert))}
+    runs = {} if args.skip_true else {"true poses": base}
+    runs["perturbed"] = replace(base, scene=str(pert))
     for lr in lrs:
         runs[f"perturbed + refine (lr {lr:g})"] = replace(base, scene=str(pert), refine_poses=True, pose_lr=lr)
     results = {}
     for name, cfg in runs.items():
-        r = train_and_eval(cfg, d / "runs" / name.replace(" ", "_").replace("(", "").replace(")", ""),
-                           reuse=args.reuse)
+        run_dir = d / "runs" / f"s{seed}" / name.replace(" ", "_").replace("(", "").replace(")", "")
+        r = train_and_eval(cfg, run_dir, reuse=args.reuse)
         m, model = r.pop("metrics"), r.pop("model")
         row = {**r, "blur_view_psnr": m["blur_view"]["psnr"], "blur_view_ssim": m["blur_view"]["ssim"],
                "novel_view_psnr": m["novel_view"]["psnr"], "blurry_input_psnr": m["blurry_input"]["psnr"]}
         if cfg.refine_poses:
             from ev3dgs.train.pose_refine import load_trajectory
 
-            run_dir = d / "runs" / name.replace(" ", "_").replace("(", "").replace(")", "")
             tj = load_trajectory(run_dir / "trajectory.npz", len(truth["true_mid"]))
             ex = schema.read(cfg.scene).train.exposure
             refined_mid = mid_poses(tj["poses"], tj["pose_t"], ex)
@@ -236,13 +197,98 @@ def main(argv=None) -> int:
     if cost:
         print(f"step cost: {cost['seconds_per_step_on'] * 1e3:.0f} ms with refinement vs "
               f"{cost['seconds_per_step_off'] * 1e3:.0f} ms without (x{cost['ratio']:.2f})", flush=True)
-    out = {"scene": Path(scene).name, "step_cost": cost, "size": f"{sc0.camera.width}x{sc0.camera.height}",
+    return {"scene": Path(scene).name, "step_cost": cost, "size": f"{sc0.camera.width}x{sc0.camera.height}",
            "fov_deg": fov, "views": len(truth["true_mid"]),
-           "iterations": iterations, "seed": args.seed, "rot_deg": args.rot_deg, "trans_frac": args.trans_frac,
-           "pose_errors_before": before, "runs": results, "seconds_total": time.perf_counter() - t_all,
-           "command": "python tools/study_refine.py " + " ".join(argv if argv is not None else sys.argv[1:])}
+           "iterations": iterations, "seed": seed, "rot_deg": args.rot_deg, "trans_frac": args.trans_frac,
+           "pose_errors_before": before, "runs": results}
+
+
+def summarise(per_seed: list[dict]) -> dict:
+    """Mean, standard deviation (ddof 1) and values across seeds of the numbers the claims rest on, per run."""
+    def stats(xs):
+        xs = [float(x) for x in xs]
+        return {"mean": float(np.mean(xs)), "std": float(np.std(xs, ddof=1)) if len(xs) > 1 else 0.0, "values": xs}
+
+    out = {"rotation_deg_median_before": stats(s["pose_errors_before"]["rotation_deg_median"] for s in per_seed),
+           "reprojection_px_median_before": stats(s["pose_errors_before"]["reprojection_px_median"]
+                                                  for s in per_seed)}
+    base = [s["runs"]["perturbed"] for s in per_seed]
+    out["perturbed"] = {k: stats(r[k] for r in base) for k in
+                        ("blur_view_psnr", "blur_view_psnr_training_poses", "novel_view_psnr")}
+    for name in per_seed[0]["runs"]:
+        rows = [s["runs"][name] for s in per_seed]
+        if "pose_errors_after" not in rows[0]:
+            continue
+        e = {k: stats(r["pose_errors_after"][k] for r in rows) for k in
+             ("rotation_deg_median", "rotation_deg_max", "centre_error_median", "reprojection_px_median")}
+        ratio = stats(r["pose_errors_after"]["rotation_deg_median"] / s["pose_errors_before"]["rotation_deg_median"]
+                      for r, s in zip(rows, per_seed))
+        out[name] = {**e, "rotation_ratio_after_before": ratio,
+                     "blur_view_psnr": stats(r["blur_view_psnr"] for r in rows),
+                     "gain_db_vs_perturbed_given_poses": stats(r["blur_view_psnr"] - b["blur_view_psnr"]
+                                                               for r, b in zip(rows, base)),
+                     "gain_db_vs_perturbed_training_poses": stats(r["blur_view_psnr"] - b["blur_view_psnr_training_poses"]
+                                                                  for r, b in zip(rows, base)),
+                     "novel_view_psnr": stats(r["novel_view_psnr"] for r in rows)}
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer steps and one refinement setting (default: off)")
+    ap.add_argument("--scene", help="scene .h5 with /train/sharp (default: simulate the quick lego at --size)")
+    ap.add_argument("--size", default="64x48", help="image size of the simulated scene (default %(default)s)")
+    ap.add_argument("--views", type=int, default=8, help="training views of the simulated scene (default 8)")
+    ap.add_argument("--fov", type=float, help="horizontal field of view of the simulated scene, degrees "
+                                              "(default: the scene's, 40)")
+    ap.add_argument("--radius", type=float, help="camera distance from the origin in the simulated scene "
+                                                 "(default: the scene's, 4)")
+    ap.add_argument("--iterations", type=int, help="training steps (default 1500, --quick 500)")
+    ap.add_argument("--rot-deg", type=float, default=1.0, help="rotation error per view, degrees (default 1)")
+    ap.add_argument("--trans-frac", type=float, default=0.02,
+                    help="translation error per view, fraction of the camera distance (default 0.02)")
+    ap.add_argument("--pose-lr", type=float, nargs="+", default=None,
+                    help="refinement learning rates to run (default 1e-3 3e-3; --quick 3e-3)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0],
+                    help="perturbation and training seeds, one study each; with several, the JSON also holds "
+                         "their mean and standard deviation (default 0)")
+    ap.add_argument("--skip-true", action="store_true",
+                    help="leave out the training on the true poses (the upper bound) to save time (default: off)")
+    ap.add_argument("--json", default="tools/results/study_refine.json", help="results (default %(default)s)")
+    ap.add_argument("--plot", default="tools/results/study_refine.png", help="figure (default %(default)s)")
+    ap.add_argument("--keep", help="folder to keep the scenes and runs in (default: a temporary one)")
+    ap.add_argument("--step-cost", action="store_true",
+                    help="also time training steps with and without refinement, interleaved in one process "
+                         "(default: off)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --keep: evaluate finished runs found there (same settings) instead of training "
+                         "them again (default: off)")
+    args = ap.parse_args(argv)
+    iterations = args.iterations or (500 if args.quick else 1500)
+    lrs = args.pose_lr or ([3e-3] if args.quick else [1e-3, 3e-3])
+    W, H = (int(x) for x in args.size.split("x"))
+    torch.set_num_threads(1)
+    tmp = None if args.keep else tempfile.TemporaryDirectory()
+    d = Path(args.keep or tmp.name)
+    d.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    scene = args.scene
+    if scene is None:
+        from ev3dgs.demo import make_scene
+
+        scene = str(make_scene(d / "scene", quiet=True, width=W, height=H, views=args.views, test_views=3,
+                               fov_deg=args.fov, radius=args.radius))
+    per_seed = [study_one(args, scene, d, seed, iterations, lrs) for seed in args.seeds]
+    if len(per_seed) == 1:
+        out = per_seed[0]
+    else:
+        out = {k: per_seed[0][k] for k in ("scene", "size", "fov_deg", "views", "iterations", "rot_deg",
+                                            "trans_frac")}
+        out.update(seeds=args.seeds, summary=summarise(per_seed), per_seed=per_seed)
+    out["seconds_total"] = time.perf_counter() - t_all
+    out["command"] = "python tools/study_refine.py " + " ".join(argv if argv is not None else sys.argv[1:])
     save_json(args.json, out)
-    plot(out, args.plot)
+    (plot if len(per_seed) == 1 else plot_seeds)(out, args.plot)
     if tmp is not None:
         tmp.cleanup()
     return 0
@@ -277,6 +323,47 @@ def plot(out: dict, png: str) -> None:
     fig.suptitle(f"--refine-poses on {out['scene']} {out['size']} (FOV {out['fov_deg']:.0f} deg), {out['views']} "
                  f"views, {out['iterations']} steps, {out['rot_deg']} deg / {out['trans_frac']:.0%} pose errors",
                  fontsize=9)
+    fig.tight_layout()
+    Path(png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+
+
+def plot_seeds(out: dict, png: str) -> None:
+    """Several seeds: per seed, the rotation error before/after and the blur-view PSNR of each run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    seeds, per = out["seeds"], out["per_seed"]
+    names = list(per[0]["runs"])
+    fig, ax = plt.subplots(1, 3, figsize=(15, 3.8))
+    x = np.arange(len(seeds))
+    w = 0.8 / (len(names) + 1)
+    ax[0].bar(x - 0.4 + w / 2, [p["runs"]["perturbed"]["blur_view_psnr_training_poses"] for p in per], w,
+              label="perturbed, at its training poses")
+    for j, n in enumerate(names):
+        ax[0].bar(x - 0.4 + (j + 1.5) * w, [p["runs"][n]["blur_view_psnr"] for p in per], w, label=n)
+    ax[0].set_ylabel("blur-view PSNR (dB)")
+    lo = min(min(p["runs"][n]["blur_view_psnr"] for n in names) for p in per)
+    ax[0].set_ylim(lo - 2, None)
+    for a, key, ylabel in ((ax[1], "rotation_deg_median", "median mid-exposure rotation error (deg, aligned)"),
+                           (ax[2], "reprojection_px_median", "median reprojection error (px)")):
+        a.bar(x - 0.2, [p["pose_errors_before"][key] for p in per], 0.4, color="k", label="perturbed (before)")
+        refined = [n for n in names if "pose_errors_after" in per[0]["runs"][n]]
+        for j, n in enumerate(refined):
+            a.bar(x + 0.2 + j * 0.4 / len(refined), [p["runs"][n]["pose_errors_after"][key] for p in per],
+                  0.4 / len(refined), label=n)
+        a.set_ylabel(ylabel)
+    ax[1].axhline(0.5 * out["summary"]["rotation_deg_median_before"]["mean"], ls="--", c="grey",
+                  label="half the error before")
+    for a in ax:
+        a.set_xticks(x, [f"seed {s}" for s in seeds])
+        a.legend(fontsize=7)
+    fig.suptitle(f"--refine-poses on {out['scene']} {out['size']} (FOV {out['fov_deg']:.0f} deg), {out['views']} "
+                 f"views, {out['iterations']} steps, {out['rot_deg']} deg / {out['trans_frac']:.0%} pose errors, "
+                 f"{len(seeds)} seeds", fontsize=9)
     fig.tight_layout()
     Path(png).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=100)

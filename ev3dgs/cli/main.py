@@ -109,7 +109,7 @@ def _render(args) -> int:
     import torch
 
     from .. import schema
-    from ..train.evaluate import load_run
+    from ..train.evaluate import load_run, training_mid_poses
     from ..train.paths import orbit_path, render_frames, write_frames
 
     cfg, model = load_run(args.run)
@@ -122,13 +122,13 @@ def _render(args) -> int:
         check_output_file(args.out, size // 10, make_parents=True)
     else:
         check_output_dir(args.out, size)
-    poses = orbit_path(np.asarray(sc.train.sharp_poses if sc.train.sharp_poses is not None
-                                  else sc.train.poses[:, sc.train.poses.shape[1] // 2]), args.frames)
+    mid, source = training_mid_poses(args.run, cfg, sc, given=args.given_poses)
+    poses = orbit_path(mid, args.frames)
     K = torch.as_tensor(sc.camera.K, dtype=model.dtype)
     bg = torch.as_tensor(sc.camera.background or (0, 0, 0), dtype=model.dtype)
     write_frames(render_frames(model, poses, K, sc.camera.width, sc.camera.height, bg, backend=cfg.backend),
                  args.out, fps=args.fps)
-    print(f"rendered {args.frames} frames -> {args.out}")
+    print(f"rendered {args.frames} frames on an orbit around {source} -> {args.out}")
     return 0
 
 
@@ -253,6 +253,9 @@ def build_parser():
     r.add_argument("--out", required=True, help="a folder for frame_NNNN.png, or a file ending in .mp4")
     r.add_argument("--frames", type=int, default=120, help="frames along the orbit (default %(default)s)")
     r.add_argument("--fps", type=int, default=30, help="frames per second of an .mp4 (default %(default)s)")
+    r.add_argument("--given-poses", action="store_true",
+                   help="for a --refine-poses run, build the orbit around the scene's given poses instead of the "
+                        "refined trajectory (trajectory.npz) the model was trained in (default: off)")
     r.set_defaults(func=_render)
     x = sub.add_parser("export", help="write the standard 3DGS .ply")
     x.add_argument("run", help="run folder written by `ev3dgs train`")

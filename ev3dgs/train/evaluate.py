@@ -88,6 +88,18 @@ def _refined_frame(run: Path, sc):
     return refined, align, initial
 
 
+def training_mid_poses(run: Path, cfg: TrainConfig, sc, given: bool = False) -> tuple[np.ndarray, str]:
+    """(mid-exposure c2w (N,4,4) of the training views, where they come from), the cameras `ev3dgs render`
+    builds its orbit around. A --refine-poses run's model lives in the frame of its refined trajectory
+    (RUN/trajectory.npz), so that is used unless ``given``; otherwise /train/sharp_poses, else each view's
+    central pose sample."""
+    if cfg.refine_poses and not given:
+        return _refined_frame(Path(run), sc)[0], "the refined trajectory (trajectory.npz)"
+    if sc.train.sharp_poses is not None:
+        return np.asarray(sc.train.sharp_poses), "the scene's /train/sharp_poses"
+    return np.asarray(sc.train.poses[:, sc.train.poses.shape[1] // 2]), "the scene's /train/poses"
+
+
 def _scores(pred: list, truth, lp=None) -> dict:
     p = [psnr(a, np.asarray(b)) for a, b in zip(pred, truth)]
     s = [ssim_metric(a, np.asarray(b)) for a, b in zip(pred, truth)]
