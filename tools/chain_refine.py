@@ -122,6 +122,10 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=1500, help="training steps per run (default 1500)")
     ap.add_argument("--pose-lr", type=float, nargs="+", default=[1e-3],
                     help="refinement learning rates, one run each (default 1e-3, the trainer's)")
+    ap.add_argument("--pose-start", type=int, default=100,
+                    help="steps before the corrections move, as `train --pose-start` (default 100)")
+    ap.add_argument("--pose-warmup", type=int, default=100,
+                    help="steps of linear lr warm-up, as `train --pose-warmup` (default 100)")
     ap.add_argument("--seed", type=int, default=0, help="recording and training seed (default 0)")
     ap.add_argument("--workdir", help="keep the files here; a recording and scene found there are reused "
                                       "(default: a temporary folder)")
@@ -168,7 +172,9 @@ def main(argv=None) -> int:
                        checkpoint_every=10 ** 6)
     runs = {"ingested poses": base}
     for lr in args.pose_lr:
-        runs[f"refine (lr {lr:g})"] = TrainConfig(**{**base.__dict__, "refine_poses": True, "pose_lr": lr})
+        runs[f"refine (lr {lr:g})"] = TrainConfig(**{**base.__dict__, "refine_poses": True, "pose_lr": lr,
+                                                          "pose_start": args.pose_start,
+                                                          "pose_warmup": args.pose_warmup})
     out["runs"] = {}
     for name, cfg in runs.items():
         run = d / "runs" / name.replace(" ", "_").replace("(", "").replace(")", "")
