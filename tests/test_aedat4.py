@@ -63,7 +63,7 @@ def test_shared_file_expected_values():
             pt = r.packet_table()
             inf = r.info()
             assert r.warnings == []
-    assert len(chunks) == 13
+    assert (pt["stream"] == 0).sum() == 13 and sum(len(c) for c in chunks) == int(pt["elements"][pt["stream"] == 0].sum())
     assert len(ev) == 117667 and ev.on_count == 72363 and ev.off_count == 45304
     assert ev.t[0] == 1633953690975950 and ev.t[-1] == 1633953691105949 and np.all(np.diff(ev.t) >= 0)
     assert int(ev.x.astype(np.int64).sum()) == 17676033 and int(ev.y.astype(np.int64).sum()) == 10498046

@@ -7,6 +7,7 @@ from __future__ import annotations
 import struct
 import threading
 import warnings
+from unittest import mock
 from pathlib import Path
 
 import lz4.frame
@@ -17,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ev3dgs.events import Events
+from ev3dgs.io import aedat4_fast
 from ev3dgs.io import aedat4_packets as P
 from ev3dgs.io.aedat4 import Aedat4Reader
 from ev3dgs.io.aedat4_writer import event_packet, write_aedat4
@@ -96,8 +98,10 @@ def test_decompress_errors_name_the_byte():
         P.decompress(short, 1, 5)
 
 
-def _read(path, threads):
-    with warnings.catch_warnings():
+def _read(path, threads, fast_path=False):
+    """Everything in the file, read through the general path (fast_path False: threads apply to events too) or
+    with the events through the C fast path."""
+    with warnings.catch_warnings(), mock.patch.object(aedat4_fast, "FAST", fast_path):
         warnings.simplefilter("ignore")
         with Aedat4Reader(path, threads=threads) as r:
             ev = Events.concatenate(list(r.events()))
@@ -120,11 +124,12 @@ def test_threads_give_identical_results(tmp_path, damage):
     p.write_bytes(bytes(data))
     one, two = _read(p, 1), _read(p, 2)
     assert not one[5] and two[5]
-    for a, b in zip((one[0].t, one[0].x, one[0].y, one[0].p), (two[0].t, two[0].x, two[0].y, two[0].p)):
-        assert np.array_equal(a, b)
-    assert [f.timestamp for f in one[1]] == [f.timestamp for f in two[1]]
-    assert np.array_equal(one[2].t, two[2].t) and np.array_equal(one[3].t, two[3].t)
-    assert one[4] == two[4]
+    for other in (two, _read(p, 1, fast_path=True)):     # 2 threads; the C fast path for the events
+        for a, b in zip((one[0].t, one[0].x, one[0].y, one[0].p), (other[0].t, other[0].x, other[0].y, other[0].p)):
+            assert np.array_equal(a, b)
+        assert [f.timestamp for f in one[1]] == [f.timestamp for f in other[1]]
+        assert np.array_equal(one[2].t, other[2].t) and np.array_equal(one[3].t, other[3].t)
+        assert one[4] == other[4]
     if damage is None:
         assert len(one[0]) == 117_667 and one[4] == []
     else:
@@ -200,7 +205,7 @@ def test_inplace_decompression_with_wrong_table_counts(tmp_path, delta):
     p = tmp_path / "f.aedat4"
     t = np.arange(30_000) * 2 + 500
     write_aedat4(p, 64, 48, Events(t, t % 64, (t // 64) % 48, np.where(t % 3, 1, -1)), packet_events=4_000)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), mock.patch.object(aedat4_fast, "FAST", False):   # the general path's blocks
         warnings.simplefilter("ignore")
         with Aedat4Reader(p, threads=1) as r:
             r._reader.elements = r._reader.elements + delta     # what the reader uses to size the block
@@ -209,8 +214,8 @@ def test_inplace_decompression_with_wrong_table_counts(tmp_path, delta):
     assert np.array_equal(ev.p, np.where(t % 3, 1, -1))
 
 
-@pytest.mark.parametrize("cores, load, want", [(4, 0.2, 2), (4, 2.4, 2), (4, 2.6, 1), (2, 0.4, 2), (2, 9.0, 1),
-                                               (1, 0.0, 1)])
+@pytest.mark.parametrize("cores, load, want", [(4, 0.2, 4), (4, 2.4, 2), (4, 2.6, 1), (2, 0.4, 2), (2, 0.6, 1),
+                                               (2, 9.0, 1), (1, 0.0, 1), (16, 0.0, 4)])
 def test_default_threads_follow_idle_cores(monkeypatch, cores, load, want):
     import ev3dgs.io.aedat4 as A
 

@@ -1,11 +1,15 @@
-"""AEDAT 4 event reading: events/s and peak memory of our reader (1 and 2 decoding threads) against dv-processing
-on the same files, in one run, as ratios taken round by round.
+"""AEDAT 4 event reading: events/s and peak memory of our reader against dv-processing on the same files, in one
+run, as ratios taken round by round. "ours-1thread" / "ours-2threads" is the reader as installed (events through
+the C fast path, ev3dgs.io.aedat4_fast, with 1 or 2 C threads decoding packets); "ours-general" the same reader
+with the fast path switched off (the numpy path that every packet the fast path does not find intact takes, one
+thread). dv-processing reads with one thread. With 2 threads the wall time only shows the gain where a core is
+idle; the CPU-time ratio shows the cost.
 
 Files: the shared DAVIS346 recording (117 667 events; read --inner times per process), a file written by
 dv-processing with uniformly random events (LZ4, the worst case for decompression), and files written by our
 writer (ev3dgs.io.aedat4_writer) from the shared recording's events tiled in time (realistic compression: real
 event statistics, 20 000-event packets) with LZ4 (DV's default) and ZSTD. Every read runs in its own child
-process (import first, then time the read; peak memory = growth of the resident-set high-water mark during the
+process (import first and time it apart as `import_s`, then time the read; peak memory = growth of the resident-set high-water mark during the
 read). The readers run interleaved, one round after another, so that load from other processes hits them
 alike; the ratio to dv-processing is taken within each round and reported as median [min, max] over rounds,
 for wall time (speed) and for CPU time (work: on a machine whose cores are busy with other work, wall time
@@ -30,7 +34,7 @@ from pathlib import Path
 from pareto import save_json
 
 SHARED = Path("/work/shared/data/aedat/aestream_davis.aedat4")
-READERS = ["ours-1thread", "ours-2threads", "dv-processing"]
+READERS = ["ours-1thread", "ours-2threads", "ours-general", "dv-processing"]
 PREVIOUS: str | None = None     # --previous: an older ev3dgs tree whose reader runs as "previous" (threads: its own)
 
 
@@ -71,10 +75,14 @@ def make_tiled_file(path: Path, n_events: int, compression: str) -> None:
 
 def read_once(reader: str, path: str, inner: int) -> dict:
     """Runs in a child process: import, then time `inner` reads and measure the peak RSS growth."""
+    t_import = time.perf_counter()
     if reader.startswith("ours") or reader == "previous":
         from ev3dgs.io.aedat4 import Aedat4Reader
 
-        kw = {} if reader == "previous" else {"threads": 1 if reader == "ours-1thread" else 2}
+        kw = {} if reader == "previous" else {"threads": 2 if reader == "ours-2threads" else 1}
+        if reader == "ours-general":
+            from ev3dgs.io import aedat4_fast
+            aedat4_fast.FAST = False
 
         def run():
             n = 0
@@ -91,6 +99,7 @@ def read_once(reader: str, path: str, inner: int) -> dict:
             while (b := rec.getNextEventBatch()) is not None:
                 n += len(b.numpy())
             return n
+    import_s = time.perf_counter() - t_import
     base = _status_kb("VmRSS:")
     with open("/proc/self/clear_refs", "w") as f:  # reset the high-water mark left by the imports
         f.write("5")
@@ -98,7 +107,7 @@ def read_once(reader: str, path: str, inner: int) -> dict:
     c0 = time.process_time()
     n = sum(run() for _ in range(inner))
     sec, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"events": n // inner, "seconds": sec / inner, "cpu_seconds": cpu / inner,
+    return {"events": n // inner, "seconds": sec / inner, "cpu_seconds": cpu / inner, "import_s": import_s,
             "peak_growth_mb": (_status_kb("VmHWM:") - base) / 1024}
 
 
@@ -139,11 +148,13 @@ def bench_file(label: str, path: Path, rounds: int, inner: int) -> dict:
                      "vs_dv_processing": statistics.median(ratios),
                      "vs_dv_processing_range": [min(ratios), max(ratios)],
                      "cpu_vs_dv_processing": statistics.median(cpu_ratios),
+                     "cpu_vs_dv_processing_range": [min(cpu_ratios), max(cpu_ratios)],
+                     "import_s": statistics.median(r["import_s"] for r in rs),
                      "peak_growth_mb": statistics.median(r["peak_growth_mb"] for r in rs)})
         print(f"{label:22s} {reader:14s} {rows[-1]['events']:>10d} ev  {rows[-1]['events_per_s'] / 1e6:6.1f} M ev/s  "
               f"cpu {rows[-1]['cpu_seconds']:.3f} s  peak +{rows[-1]['peak_growth_mb']:5.1f} MB  "
               f"x{rows[-1]['vs_dv_processing']:.2f} [{min(ratios):.2f}, {max(ratios):.2f}] vs dv-processing "
-              f"(CPU x{rows[-1]['cpu_vs_dv_processing']:.2f})",
+              f"(CPU x{rows[-1]['cpu_vs_dv_processing']:.2f})  import {rows[-1]['import_s']:.2f} s",
               flush=True)
     return {"file": label, "file_mb": path.stat().st_size / 2**20, "rows": rows}
 

@@ -1,9 +1,10 @@
 """AEDAT 4.0 reader (DV / dv-processing recordings): events, frames, IMU and triggers, streamed per packet.
 
 The container (IOHeader, stream XML, packet index from the FileDataTable or by walking the packets, salvage of
-a truncated tail) is read by `aedat4_container`; packets are decompressed and decoded by `aedat4_packets`
-(optionally several at once in a small thread pool) and every decoded packet is checked against what the
-file states by `checks.StreamChecks`. Flatbuffers are parsed by `flatbuf` (clean room, bounds-checked).
+a truncated tail) is read by `aedat4_container`; events streams of an indexed file are read by `aedat4_fast`
+(C: read, decompress, parse, unpack and check in one pass, no GIL), and any packet it does not find intact, as
+well as every other packet, is decompressed and decoded by `aedat4_packets` (optionally with a read-ahead
+thread) and checked against what the file states by `checks.StreamChecks`. Flatbuffers are parsed by `flatbuf` (clean room, bounds-checked).
 Format: the dv-processing documentation of the AEDAT 4.0 file format and its flatbuffer schemas.
 """
 from __future__ import annotations
@@ -14,6 +15,7 @@ import warnings as _warnings
 import numpy as np
 
 from ..events import Events
+from . import aedat4_fast as fast
 from .aedat4_container import MAGIC, read_container
 from .aedat4_packets import COMPRESSIONS, EVENT_DTYPE, IDENTS, KINDS, IMU_FIELDS, PacketReader, Skip, summary
 from .checks import StreamChecks
@@ -22,11 +24,11 @@ from .types import AedatError, AedatWarning, ImuData, RecordingReader, StreamInf
 
 __all__ = ["Aedat4Reader", "AedatWarning", "info", "MAGIC", "EVENT_DTYPE", "COMPRESSIONS", "THREADS"]
 
-# Threads decoding at once by default. With 2, a worker reads and decompresses packets (GIL-free C calls) while
-# the calling thread unpacks and checks the previous ones; that only pays where a core is idle: on a machine
-# whose cores are busy the worker only adds work (tools/bench_aedat.py and tools/probe_aedat_threads.py, load
-# 6-8 on 2 cores: 2 threads took 7-30 % more CPU than 1 and no less wall time). THREADS = None picks 2 when the
-# 1-minute load average leaves a core idle, else 1; set an int to force.
+# Threads decoding at once by default. Events of an indexed file: the C fast path decodes the packets of a chunk
+# on that many threads (each packet into its own place; tools/bench_aedat.py). Everything else: with 2, a worker
+# reads and decompresses packets while the calling thread unpacks the previous ones, which only pays where a core
+# is idle. THREADS = None picks default_threads(): the cores the 1-minute load average leaves idle, 1 to 4; set
+# an int to force.
 THREADS: int | None = None
 
 
@@ -36,7 +38,7 @@ def default_threads() -> int:
         load = os.getloadavg()[0]
     except OSError:
         load = float(cores)
-    return 2 if cores >= 2 and load <= cores - 1.5 else 1
+    return max(1, min(4, int(cores - load + 0.5)))
 
 
 class Aedat4Reader(RecordingReader):
@@ -45,9 +47,9 @@ class Aedat4Reader(RecordingReader):
     Every decoded packet is checked against what the file states (ev3dgs.io.checks): a corrupt packet is
     skipped, and values the file contradicts are dropped, with a warning naming the stream, packet and byte;
     with strict=True they raise AedatError instead. skip_corrupt=True/False is the older spelling of
-    strict=False/True. `threads`: 1 decodes in the calling thread; N > 1 adds N - 1 read-ahead threads that read
-    and decompress packets while the calling thread unpacks them (default: THREADS, or default_threads(): 2 when
-    a core is idle, else 1)."""
+    strict=False/True. `threads`: 1 decodes in the calling thread; N > 1 decodes the events packets of an indexed
+    file on N C threads (the fast path), and adds N - 1 read-ahead threads that read and decompress other packets
+    while the calling thread unpacks them (default: THREADS, or default_threads(): the idle cores, 1 to 4)."""
 
     format = "aedat4"
 
@@ -106,22 +108,36 @@ class Aedat4Reader(RecordingReader):
             if end_us is not None:
                 keep &= self._t0[todo] < end_us
             todo = todo[keep]
+        if kind == "events" and fast.usable(self):
+            for got in fast.iterate(self, s, chk, todo.tolist(), self.threads):
+                if type(got) is not int:
+                    yield got               # a chunk the fast path read and checked
+                    continue
+                out = self._checked(got, self._reader._finish(self._reader._attempt(got, kind, s.source), kind),
+                                    kind, chk, check)
+                if out is not None:
+                    yield out
+            return
         for i, got in self._reader.iterate(todo.tolist(), kind, s.source, self.threads):
-            try:
-                if isinstance(got, Exception):
-                    raise got
-                out = check[kind](i, got)
-            except Skip as e:
-                self._warn(str(e))
-                continue
-            except (AedatError, FlatbufError) as e:
-                msg = str(e) if isinstance(e, AedatError) else f"byte {int(self._off[i])}: corrupt {kind} packet ({e})"
-                if self.strict:
-                    raise AedatError(msg) from None
-                self._warn(f"{msg} [{chk.where(i)}]: packet skipped")
-                continue
+            out = self._checked(i, got, kind, chk, check)
             if out is not None:
                 yield out
+
+    def _checked(self, i: int, got, kind: str, chk: StreamChecks, check: dict):
+        """Packet i as decoded (or the exception decoding raised) -> its checked content, or None when it was
+        skipped (with a warning; strict: raising)."""
+        try:
+            if isinstance(got, Exception):
+                raise got
+            return check[kind](i, got)
+        except Skip as e:
+            self._warn(str(e))
+        except (AedatError, FlatbufError) as e:
+            msg = str(e) if isinstance(e, AedatError) else f"byte {int(self._off[i])}: corrupt {kind} packet ({e})"
+            if self.strict:
+                raise AedatError(msg) from None
+            self._warn(f"{msg} [{chk.where(i)}]: packet skipped")
+        return None
 
     # ------------------------------------------------------------------ public API
     def close(self) -> None:
@@ -169,7 +185,9 @@ class Aedat4Reader(RecordingReader):
         return w, h
 
     def events(self, stream=None, start_us: int | None = None, end_us: int | None = None):
-        """Iterator of Events, one chunk per packet in file order, restricted to start_us <= t < end_us."""
+        """Iterator of Events chunks in file order, restricted to start_us <= t < end_us. A chunk holds whole
+        packets: consecutive packets merged up to aedat4_fast.CHUNK_EVENTS events on the fast path, one packet
+        per chunk on the general path (files without a FileDataTable, FAST off, no C extension)."""
         lo = np.iinfo(np.int64).min if start_us is None else start_us
         hi = np.iinfo(np.int64).max if end_us is None else end_us
         for ev in self._packets("events", stream, start_us, end_us):

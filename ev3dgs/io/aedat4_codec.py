@@ -87,6 +87,30 @@ def available(comp: int) -> bool:
     return (_lz4 is not None) if comp in (1, 2) else (_zstd is not None) if comp in (3, 4) else False
 
 
+def new_lz4_context() -> int:
+    """A fresh LZ4F decompression context (address); free it with free_lz4_context."""
+    ptr = ctypes.c_void_p()
+    if _lz4.LZ4F_isError(_lz4.LZ4F_createDecompressionContext(ctypes.byref(ptr), _LZ4F_VERSION)):
+        raise MemoryError("LZ4F_createDecompressionContext failed")
+    return ptr.value
+
+
+def new_zstd_context() -> int:
+    """A fresh zstd decompression context (address); free it with free_zstd_context."""
+    ctx = _zstd.ZSTD_createDCtx()
+    if not ctx:
+        raise MemoryError("ZSTD_createDCtx failed")
+    return ctx
+
+
+def free_lz4_context(ctx: int) -> None:
+    _lz4.LZ4F_freeDecompressionContext(ctx)
+
+
+def free_zstd_context(ctx: int) -> None:
+    _zstd.ZSTD_freeDCtx(ctx)
+
+
 _char_at = ctypes.c_char.from_buffer
 
 

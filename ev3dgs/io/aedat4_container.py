@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import aedat4_fast as fast
 from .aedat4_packets import COMPRESSIONS, HDR, KINDS, decompress
 from .flatbuf import FlatbufError, root, table_vector
 from .types import AedatError, StreamInfo
@@ -153,7 +154,9 @@ def _load_table(f, c: Container, tp: int, warn) -> bool:
         if ident != b"FTAB":
             raise AedatError(f"byte {tp}: FileDataTable identifier is {ident!r}, not b'FTAB'")
         start, count = tab.vector(0, 4)
-        a = table_vector(body, start, count, _FTAB_FIELDS)     # fresh arrays (buf is a reused scratch buffer)
+        a = fast.table(body, start, count)      # fresh arrays (buf is a reused scratch buffer)
+        if a is None:
+            a = table_vector(body, start, count, _FTAB_FIELDS)
     except (FlatbufError, AedatError) as e:
         warn(f"byte {tp}: corrupt FileDataTable ({e}): walking the packets")
         return False
