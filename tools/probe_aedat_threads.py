@@ -1,4 +1,5 @@
-"""Where the time of a threaded AEDAT 4 read goes: per read, wall time, the process's CPU time, the consuming
+"""Where the time of a threaded AEDAT 4 read through the numpy path (ev3dgs.io.aedat4_packets; the C fast path
+switched off) goes: per read, wall time, the process's CPU time, the consuming
 thread's own CPU time and the time it spends waiting for the read-ahead workers, and context switches
 (voluntary ones are mostly GIL and future hand-overs between threads), for 1 and 2 threads, optionally also
 for an older ev3dgs tree (--previous DIR, e.g. `git archive <commit> ev3dgs | tar -x -C DIR`).
@@ -28,6 +29,11 @@ def child(path: str, threads: int, reads: int) -> dict:
     import concurrent.futures._base as fb
 
     from ev3dgs.io.aedat4 import Aedat4Reader
+    try:                                          # the numpy path's read-ahead is what this probes (the C fast
+        from ev3dgs.io import aedat4_fast         # path's threads never touch Python: bench_aedat.py times them)
+        aedat4_fast.FAST = False
+    except ImportError:                           # an older tree (--previous) has no fast path
+        pass
 
     waited = [0.0]
     result = fb.Future.result
