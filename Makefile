@@ -9,7 +9,7 @@ export OMP_WAIT_POLICY := PASSIVE
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py ev3dgs/io/_aedat4_fast.c
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --upgrade pip
 	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.

@@ -71,10 +71,12 @@ def run(out: Path, scene: str = "lego", seed: int = 0, iterations: int = DEMO_IT
     result = {"path": path, "events": len(schema.read(path).events)}
     if train:
         from .train.compare import compare_variants, summary_table
+        from .train.jobs import default_jobs
         from .train.config import TrainConfig
 
         base = TrainConfig(scene=str(path), iterations=iterations, init_points=5000, seed=seed)
-        results = compare_variants(path, out / "runs", base, quiet=True)
+        # the three variants train side by side, one thread each (same results as one after the other)
+        results = compare_variants(path, out / "runs", base, quiet=True, jobs=default_jobs())
         result["variants"] = {k: v["metrics"] for k, v in results.items()}
         write_atomic(out / "comparison.json", json.dumps(
             {k: {"test_psnr": v["metrics"]["test"]["psnr"], "test_ssim": v["metrics"]["test"]["ssim"],

@@ -303,3 +303,25 @@ def test_bad_config_json_is_one_line(scene, finished_run, tmp_path, capsys, edit
     assert_one_line_error(rc, err, "config.json", needle)
     rc, err = _cli(capsys, "eval", run)
     assert_one_line_error(rc, err, needle)
+
+
+def test_variants_side_by_side_equal_one_after_the_other(scene, tmp_path):
+    """compare_variants(jobs=2) (what `make demo` does: one-thread worker processes) gives the checkpoints and
+    scores of running the variants one after the other in this process."""
+    from ev3dgs.train.compare import compare_variants
+
+    sc = schema.read(scene)                         # the tiny scene with sharp frames to score against
+    sc.train.sharp = np.asarray(sc.train.images)[:, ::-1].copy()
+    sc.train.sharp_poses = np.asarray(sc.train.poses)[:, len(sc.train.poses[0]) // 2]
+    scene = str(tmp_path / "scored.h5")
+    schema.write(sc, scene)
+    base = _config(scene, "cpu", iterations=6)
+    seq = compare_variants(scene, tmp_path / "seq", base, variants=("naive", "blur+event"), jobs=1)
+    par = compare_variants(scene, tmp_path / "par", base, variants=("naive", "blur+event"), jobs=2)
+    assert list(par) == ["naive", "blur+event"]
+    for name in seq:
+        strip = lambda m: {k: v for k, v in m.items() if k != "run"}                    # noqa: E731
+        assert strip(seq[name]["metrics"]) == strip(par[name]["metrics"])
+        assert seq[name]["gaussians"] == par[name]["gaussians"]
+        a, b = (torch.load(d / name / "ckpt.pt", weights_only=True) for d in (tmp_path / "seq", tmp_path / "par"))
+        assert_bitwise_equal(a["model"] if "model" in a else a, b["model"] if "model" in b else b)

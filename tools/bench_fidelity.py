@@ -43,6 +43,7 @@ from ev3dgs.sim.scenes import builtin_scenes, load_scene, resolve_render  # noqa
 from ev3dgs.train.config import TrainConfig  # noqa: E402
 from ev3dgs.errors import InputError  # noqa: E402
 from ev3dgs.train.evaluate import evaluate  # noqa: E402
+from ev3dgs.train.jobs import run_parallel  # noqa: E402
 from ev3dgs.train.lpips import load_lpips  # noqa: E402
 from ev3dgs.train.trainer import Trainer  # noqa: E402
 
@@ -150,29 +151,7 @@ def run_jobs(jobs: list[dict], n_jobs: int, quiet: bool) -> list[dict]:
                   f"novel view {nv:.2f} dB ({r['wall']:.0f} s)", flush=True)
         return r
 
-    if n_jobs <= 1:
-        return [report(_run_job(j)) for j in jobs]
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    env = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
-    import os
-
-    old = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)          # inherited by the spawned workers before they import torch/numba
-    try:
-        with ProcessPoolExecutor(n_jobs, mp_context=mp.get_context("spawn")) as pool:
-            futures = {pool.submit(_run_job, j): i for i, j in enumerate(jobs)}
-            done = [None] * len(jobs)
-            for f in as_completed(futures):
-                done[futures[f]] = report(f.result())
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    return done
+    return run_parallel(_run_job, jobs, n_jobs, report)
 
 
 def summarise(runs: list[dict], variants=VARIANTS) -> dict:
