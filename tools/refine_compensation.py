@@ -70,7 +70,8 @@ def analyse(keep: Path, scene: Path, seed: int, rot_deg: float, trans_frac: floa
     bounds = np.asarray(sc.bounds) if sc.bounds is not None else np.array([[-1.0] * 3, [1.0] * 3])
     with tempfile.TemporaryDirectory() as d:  # the perturbation is seeded: re-derive the truth it started from
         truth = study_refine.perturb_scene(str(scene), Path(d) / "p.h5", rot_deg, trans_frac, seed)
-    run = keep if (keep / "trajectory.npz").is_file() else keep / "runs" / f"s{seed}" / f"perturbed_+_refine_lr_{lr:g}"
+    run = keep if (keep / "trajectory.npz").is_file() else \
+        keep / "runs" / f"s{seed}" / f"perturbed_+_refine_lr_{lr:g}"
     if not (run / "trajectory.npz").is_file():
         raise SystemExit(f"error: no refined run at {run}")
     tj = load_trajectory(run / "trajectory.npz", len(truth["true_mid"]))
@@ -111,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
         r = analyse(Path(k), scene, pick(a.seed, i), a.rot_deg, a.trans_frac, pick(a.pose_lr, i))
         rows.append(r)
         b, f = r["before"], r["after"]
-        print(f"{r['size']:>6} {r['iterations']} steps seed {r['seed']} {r['scene']}: px before full {b['full']:.2f} (rotation only "
+        print(f"{r['size']:>6} {r['iterations']} steps seed {r['seed']} {r['scene']}: px before full "
+              f"{b['full']:.2f} (rotation only "
               f"{b['rotation_only']:.2f}, centre only {b['centre_only']:.2f}); after full {f['full']:.2f} "
               f"(rotation only {f['rotation_only']:.2f}, centre only {f['centre_only']:.2f}); rotation deg "
               f"(median) roll {b['roll_deg']:.2f} -> {f['roll_deg']:.2f}, pan/tilt {b['pan_tilt_deg']:.2f} -> "
