@@ -214,3 +214,20 @@ def test_bench_train_scaling_step_and_plot(tmp_path):
     plot({"threads": 1, "subposes": 5, "by_pixels": rows("p", [100, 400]), "by_gaussians": rows("g", [100, 1000]),
           "slope_pixels": 0.5, "slope_gaussians": 0.5}, str(tmp_path / "s.png"))
     assert (tmp_path / "s.png").stat().st_size > 0
+
+
+def test_bench_train_speed_worker_fixed_count(scene_path):
+    """bench_train.py --speed --no-densify: the worker trains without densification, so the Gaussian count
+    stays the init's at every timed step, and the per-1000-Gaussians figure is the per-step one scaled by
+    that count (an independent recomputation from the record's own fields)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    import math
+    from bench_train_speed import worker
+
+    rec = worker(str(scene_path), 4, 1, 0, densify=False)
+    assert rec["densify"] is False and rec["gaussians"] == 5000 and rec["mean_gaussians"] == 5000
+    assert rec["cpu_ms_per_step"] > 0
+    assert math.isclose(rec["cpu_ms_per_step_per_1k"], rec["cpu_ms_per_step"] * 1000 / 5000, rel_tol=1e-12)

@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from ev3dgs.logmap import DEFAULT_LOG_KNEE, safe_log_torch
 from ev3dgs.sensor import LUMINANCE_WEIGHTS, cfa_channels
 from ev3dgs.train.events import bin_signed_events, pair_list, pair_targets, pose_counts, sub_pose_times
-from ev3dgs.train.losses import (blur_loss, linear_to_srgb_torch, log_intensity, pose_event_loss,
-                                 srgb_to_linear_torch, ssim)
+from ev3dgs.train.losses import (average_loss, blur_average, blur_loss, linear_to_srgb_torch, log_intensity,
+                                 pose_event_loss, srgb_to_linear_torch, ssim)
 from ev3dgs.train.metrics import lpips_unavailable_reason, psnr, ssim_metric
 
 torch.set_default_dtype(torch.float32)
@@ -383,3 +383,44 @@ def test_ssim_separable_equals_the_2d_window_float64():
         ga, = torch.autograd.grad(x, a)
         gb, = torch.autograd.grad(y, a)
         assert abs(float((x - y).detach())) < 1e-12 and float((ga - gb).abs().max()) < 1e-12
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2 ** 31 - 1), st.sampled_from(["none", "RGGB"]))
+def test_shared_linear_decode_equals_two_decodes(seed, cf):
+    """The trainer decodes the renders to linear light once and hands that to blur_average and log_intensity
+    (``linear=``). Values: the same operations on the same numbers, so bitwise equal to each decoding on its
+    own. Gradients (float64): autograd now adds the two losses' gradients before the one decode's backward,
+    f'(x) (g1 + g2) instead of f'(x) g1 + f'(x) g2; both are within a few ulps (a couple of roundings of
+    each product and sum) of the exact value, so they agree to 1e-12 relative to the gradient's scale."""
+    g = torch.Generator().manual_seed(seed)
+    stack = (torch.rand(3, 6, 5, 3, generator=g, dtype=torch.float64) * 1.1 - 0.05).requires_grad_(True)
+    target = torch.rand(6, 5, 3, generator=g, dtype=torch.float64)
+    counts = torch.randint(0, 3, (3, 2, 6, 5), generator=g).to(torch.float64)
+    pairs = [(0, 1), (0, 2), (1, 2)]
+
+    def losses(shared):
+        lin = srgb_to_linear_torch(stack) if shared else None
+        avg = blur_average(stack, "linear", linear=lin)
+        log_l = log_intensity(stack, cf, transfer="srgb", linear=lin)
+        return avg, log_l, average_loss(avg, target) + pose_event_loss(log_l, counts, pairs, 0.2, 0.25)
+
+    avg1, log1, l1 = losses(False)
+    avg2, log2, l2 = losses(True)
+    assert torch.equal(avg1, avg2) and torch.equal(log1, log2) and torch.equal(l1, l2)
+    other = srgb_to_linear_torch(stack.detach()) * 0.5  # the argument is used, not recomputed
+    assert not torch.equal(blur_average(stack, "linear", linear=other), avg1)
+    assert not torch.equal(log_intensity(stack, cf, transfer="srgb", linear=other), log1)
+    assert torch.equal(blur_loss(stack, target, 0.2, "linear"), average_loss(blur_average(stack, "linear"), target))
+    (g1,) = torch.autograd.grad(l1, stack)
+    (g2,) = torch.autograd.grad(l2, stack)
+    assert torch.all(torch.isfinite(g1))
+    assert float((g1 - g2).abs().max()) <= 1e-12 * max(1.0, float(g1.abs().max()))
+
+
+def test_shared_linear_decode_rejects_a_wrong_shape():
+    stack = torch.rand(2, 4, 4, 3)
+    with pytest.raises(ValueError, match="linear must have"):
+        blur_average(stack, "linear", linear=torch.rand(1, 4, 4, 3))
+    with pytest.raises(ValueError, match="linear must have"):
+        log_intensity(stack, linear=torch.rand(2, 4, 3, 3))

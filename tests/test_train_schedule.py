@@ -258,6 +258,22 @@ def test_guard_covers_any_optimizer_the_trainer_holds(scene, tmp_path):
     tr._guard(torch.tensor(1.0), torch.tensor(1.0), torch.tensor(0.0))  # finite: no error
 
 
+@pytest.mark.parametrize("bad", [float("inf"), float("-inf"), float("nan")])
+def test_guard_sum_prefilter_is_exact(scene, tmp_path, bad):
+    """The guard tests a gradient's sum first and the elements only when the sum is not finite: a finite
+    gradient whose float32 sum overflows (3e38 + 3e38 = inf) must pass, and one inf or NaN anywhere must stop
+    the run, also next to values whose sum overflows the other way (inf - huge stays inf, NaN stays NaN)."""
+    tr = Trainer(_cfg(scene), tmp_path / "run", quiet=True)
+    extra = torch.zeros(4, requires_grad=True)
+    tr.camera_opt = torch.optim.Adam([extra], lr=1e-3)
+    extra.grad = torch.tensor([3e38, 3e38, -1.0, 2.0], dtype=torch.float32)
+    assert not torch.isfinite(extra.grad.sum())  # the case the element-wise fallback exists for
+    tr._guard(torch.tensor(1.0), torch.tensor(1.0), torch.tensor(0.0))  # finite elements: no error
+    extra.grad = torch.tensor([-3e38, -3e38, bad, 1.0], dtype=torch.float32)
+    with pytest.raises(TrainingError, match="non-finite"):
+        tr._guard(torch.tensor(1.0), torch.tensor(1.0), torch.tensor(0.0))
+
+
 def test_checkpoint_from_the_shared_stream_era_is_refused(scene, tmp_path):
     """A checkpoint whose 'rng' is one generator state (the view order and pair draws shared it) cannot be
     continued exactly with two streams: resuming it is a one-line InputError, not a silently different run."""

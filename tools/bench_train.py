@@ -44,6 +44,9 @@ def main(argv=None) -> int:
     ap.add_argument("--against", help="--speed: the other checkout's root folder (its ev3dgs/ is imported)")
     ap.add_argument("--repeats", type=int, default=1, help="--speed: run pairs per thread count (default 1)")
     ap.add_argument("--seed", type=int, default=0, help="--speed: training seed (default 0)")
+    ap.add_argument("--no-densify", action="store_true",
+                    help="--speed: train without densification, so both checkouts keep the init's Gaussian count "
+                         "(the same work per step; default: off, densify as the trainer does)")
     ap.add_argument("--one-at-a-time", action="store_true",
                     help="--speed: run the two checkouts one after the other, not at the same time (default: off)")
     args = ap.parse_args(argv)
@@ -58,7 +61,7 @@ def main(argv=None) -> int:
         if not args.against or not args.scene:
             ap.error("--speed needs --against DIR and --scene S.h5")
         out = run_speed(args.scene, args.against, args.iterations, args.threads or [1], args.seed, args.repeats,
-                        concurrent=not args.one_at_a_time)
+                        concurrent=not args.one_at_a_time, densify=not args.no_densify)
         save_json(args.json if args.json != ap.get_default("json") else "tools/results/bench_train_speed.json", out)
         return 0
     with tempfile.TemporaryDirectory() as d:

@@ -26,7 +26,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 
 
-def worker(scene: str, iterations: int, threads: int, seed: int) -> dict:
+def worker(scene: str, iterations: int, threads: int, seed: int, densify: bool = True) -> dict:
     """Runs inside the subprocess: train blur+event with whatever ev3dgs PYTHONPATH provides."""
     import ev3dgs
     from ev3dgs.train.config import TrainConfig
@@ -34,13 +34,16 @@ def worker(scene: str, iterations: int, threads: int, seed: int) -> dict:
     from ev3dgs.train.trainer import Trainer
 
     with tempfile.TemporaryDirectory() as d:
-        cfg = TrainConfig(scene=scene, iterations=iterations, init_points=5000, seed=seed, threads=threads)
+        cfg = TrainConfig(scene=scene, iterations=iterations, init_points=5000, seed=seed, threads=threads,
+                          densify=densify)
+        counts = []
         trainer = Trainer(cfg, Path(d) / "run", quiet=True)
         marks = {}
 
         def on_step(tr, rec):  # the clock starts after step 1 (kernel loading / JIT cache)
             marks.setdefault("first", (time.perf_counter(), time.process_time()))
             marks["last"] = (time.perf_counter(), time.process_time())
+            counts.append(len(tr.model))
 
         t0 = time.perf_counter()
         trainer.fit(on_step=on_step)
@@ -50,13 +53,17 @@ def worker(scene: str, iterations: int, threads: int, seed: int) -> dict:
         m = evaluate(Path(d) / "run", write_images=False)
     return {"code": str(Path(ev3dgs.__file__).parent.parent), "threads": threads, "seed": seed,
             "iterations": iterations, "fit_seconds": seconds, "ms_per_step": 1e3 * steady,
-            "cpu_ms_per_step": 1e3 * cpu,
+            "cpu_ms_per_step": 1e3 * cpu, "densify": densify,
+            # the Gaussian count changes with densification: CPU ms per step per 1000 Gaussians (mean count over
+            # the timed steps) compares runs whose models grew differently
+            "mean_gaussians": sum(counts[1:]) / max(1, len(counts) - 1),
+            "cpu_ms_per_step_per_1k": 1e6 * cpu / max(1.0, sum(counts[1:]) / max(1, len(counts) - 1)),
             "test_psnr": m["test"]["psnr"], "train_sharp_psnr": m["train_sharp"]["psnr"],
             "gaussians": len(trainer.model)}
 
 
 def run_speed(scene: str, against: str, iterations: int, threads: list[int], seed: int, repeats: int,
-              concurrent: bool = True) -> dict:
+              concurrent: bool = True, densify: bool = True) -> dict:
     runs = []
     trees = (("new", str(REPO)), ("old", str(Path(against).resolve())))
     for th in threads:
@@ -65,7 +72,7 @@ def run_speed(scene: str, against: str, iterations: int, threads: list[int], see
             for tag, tree in trees:
                 env = dict(os.environ, PYTHONPATH=tree, OMP_WAIT_POLICY="PASSIVE")
                 cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", scene, str(iterations), str(th),
-                       str(seed)]
+                       str(seed), str(int(densify))]
                 proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                         cwd=tree)
                 procs.append((tag, tree, proc))
@@ -80,7 +87,7 @@ def run_speed(scene: str, against: str, iterations: int, threads: list[int], see
                 rec["concurrent"] = concurrent
                 runs.append(rec)
                 print(f"{tag:3s} threads {th}: {rec['ms_per_step']:7.1f} ms/step wall, {rec['cpu_ms_per_step']:7.1f} "
-                      f"CPU, test PSNR {rec['test_psnr']:.2f}, deblurred train PSNR {rec['train_sharp_psnr']:.2f}, "
+                      f"CPU ({rec['cpu_ms_per_step_per_1k']:.2f} per 1000 Gaussians), test PSNR {rec['test_psnr']:.2f}, deblurred train PSNR {rec['train_sharp_psnr']:.2f}, "
                       f"{rec['gaussians']} Gaussians", flush=True)
     summary = {}
     for th in threads:
@@ -89,13 +96,17 @@ def run_speed(scene: str, against: str, iterations: int, threads: list[int], see
         summary[f"threads_{th}"] = {
             "speedup_wall": med(pick("old", "ms_per_step")) / med(pick("new", "ms_per_step")),
             "speedup_cpu": med(pick("old", "cpu_ms_per_step")) / med(pick("new", "cpu_ms_per_step")),
+            "speedup_cpu_per_1k": (med(pick("old", "cpu_ms_per_step_per_1k"))
+                                   / med(pick("new", "cpu_ms_per_step_per_1k"))),
             "test_psnr_new_minus_old": med(pick("new", "test_psnr")) - med(pick("old", "test_psnr"))}
         print(f"threads {th}: old/new {summary[f'threads_{th}']['speedup_wall']:.2f}x wall, "
-              f"{summary[f'threads_{th}']['speedup_cpu']:.2f}x CPU time", flush=True)
-    return {"scene": scene, "against": str(against), "variant": "blur+event, init_points 5000",
+              f"{summary[f'threads_{th}']['speedup_cpu']:.2f}x CPU time, "
+              f"{summary[f'threads_{th}']['speedup_cpu_per_1k']:.2f}x CPU time per 1000 Gaussians", flush=True)
+    return {"scene": scene, "against": str(against), "densify": densify,
+            "variant": "blur+event, init_points 5000" + ("" if densify else ", no densification"),
             "iterations": iterations, "seed": seed, "runs": runs, "summary": summary}
 
 
 if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "--worker":
-    _, _, scene_, it_, th_, seed_ = sys.argv
-    print(json.dumps(worker(scene_, int(it_), int(th_), int(seed_))))
+    _, _, scene_, it_, th_, seed_, dens_ = sys.argv
+    print(json.dumps(worker(scene_, int(it_), int(th_), int(seed_), dens_ == "1")))

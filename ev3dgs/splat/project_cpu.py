@@ -425,6 +425,15 @@ def _f64(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
 
 
+def inv4(vm: np.ndarray) -> np.ndarray:
+    """Inverse of (..., 4, 4) float64 view matrices through torch (as the torch path's ``torch.linalg.inv``),
+    not numpy: numpy's bundled OpenBLAS wakes its thread pool for even a 4x4 ``np.linalg.inv``, and the woken
+    threads spin (sched_yield) between calls; called for every render, that kept a second core busy all
+    through training (measured: ~1.2 s of CPU per second of wall time in the pool's thread, whatever
+    --threads says). torch's LAPACK call here runs on the calling thread."""
+    return torch.linalg.inv(torch.from_numpy(np.ascontiguousarray(vm, dtype=np.float64))).numpy()
+
+
 def camera_table(viewmats: np.ndarray, K: np.ndarray, width: int, height: int):
     """Per camera: fx fy cx cy and the FOV clamp limits (project.py), and the camera centres."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -432,7 +441,7 @@ def camera_table(viewmats: np.ndarray, K: np.ndarray, width: int, height: int):
     row = [fx, fy, cx, cy, (cx + 0.5) / fx + 0.3 * tan_x, (width - 0.5 - cx) / fx + 0.3 * tan_x,
            (cy + 0.5) / fy + 0.3 * tan_y, (height - 0.5 - cy) / fy + 0.3 * tan_y]
     cam = np.tile(np.array(row, np.float64), (len(viewmats), 1))
-    campos = np.stack([np.linalg.inv(v)[:3, 3] for v in viewmats]) if len(viewmats) else np.zeros((0, 3))
+    campos = inv4(viewmats)[:, :3, 3] if len(viewmats) else np.zeros((0, 3))
     return cam, np.ascontiguousarray(campos)
 
 
@@ -507,7 +516,7 @@ def viewmat_grad(g_vm: np.ndarray, vm: np.ndarray) -> np.ndarray:
     C = vm.shape[0]
     out = np.zeros((C, 4, 4))
     out[:, :3, :] = acc[:, :12].reshape(C, 3, 4)
-    inv = np.linalg.inv(vm)
+    inv = inv4(vm)
     a = np.einsum("cij,ci->cj", inv[:, :3, :], acc[:, 12:15])  # (C, 4): (V^-1[:3, :])^T g
     out -= a[:, :, None] * inv[:, None, :, 3]
     return out

@@ -86,15 +86,25 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: float =
     return ssim_map.mean()
 
 
-def blur_average(renders: torch.Tensor, space: str = "srgb") -> torch.Tensor:
+def _check_linear(renders: torch.Tensor, linear):
+    """``linear``, an already decoded ``srgb_to_linear_torch(renders)`` a caller shares between losses (one
+    decode and one decode backward per step instead of one per loss), must match the renders' shape."""
+    if linear is not None and tuple(linear.shape) != tuple(renders.shape):
+        raise ValueError(f"linear must have the renders' shape {tuple(renders.shape)}, got {tuple(linear.shape)}")
+    return linear
+
+
+def blur_average(renders: torch.Tensor, space: str = "srgb", linear: torch.Tensor | None = None) -> torch.Tensor:
     """(K, H, W, 3) sub-pose renders -> (H, W, 3) the blurry frame they make: the mean of the display values
-    (``space="srgb"``) or the mean in linear light, re-encoded (``space="linear"``)."""
+    (``space="srgb"``) or the mean in linear light, re-encoded (``space="linear"``; ``linear``: the renders
+    already through ``srgb_to_linear_torch``, used instead of decoding them again)."""
     if renders.ndim != 4:
         raise ValueError(f"renders must be (K, H, W, 3), got {tuple(renders.shape)}")
     if space == "srgb":
         return renders.mean(dim=0)
     if space == "linear":
-        return linear_to_srgb_torch(srgb_to_linear_torch(renders).mean(dim=0))
+        lin = _check_linear(renders, linear)
+        return linear_to_srgb_torch((srgb_to_linear_torch(renders) if lin is None else lin).mean(dim=0))
     raise ValueError(f"space must be 'srgb' or 'linear', got {space!r}")
 
 
@@ -102,7 +112,12 @@ def blur_loss(renders: torch.Tensor, target: torch.Tensor, lam: float = 0.2, spa
     """(K, H, W, 3) sub-pose renders and the (H, W, 3) blurry sRGB frame -> (1-lam)*MSE + lam*(1-SSIM) of
     their average. ``space="srgb"`` averages display values; ``space="linear"`` averages in linear light
     (each render through the sRGB EOTF, mean, back to sRGB), which is how a real exposure integrates."""
-    avg = blur_average(renders, space)
+    return average_loss(blur_average(renders, space), target, lam)
+
+
+def average_loss(avg: torch.Tensor, target: torch.Tensor, lam: float = 0.2) -> torch.Tensor:
+    """blur_loss from the (H, W, 3) average (``blur_average``) the caller already has (the trainer keeps it
+    for the step's PSNR): (1-lam)*MSE + lam*(1-SSIM) against the blurry sRGB frame."""
     target = target.to(avg.dtype)
     mse = torch.mean((avg - target) ** 2)
     return (1.0 - lam) * mse + lam * (1.0 - ssim(avg, target))
@@ -114,7 +129,7 @@ _TRANSFERS = ("srgb", "linear", "display")
 
 
 def log_intensity(renders: torch.Tensor, color_filter: str = "none", knee: float = DEFAULT_LOG_KNEE,
-                  transfer: str = "srgb", raw_matrix=None) -> torch.Tensor:
+                  transfer: str = "srgb", raw_matrix=None, linear: torch.Tensor | None = None) -> torch.Tensor:
     """(K, H, W, 3) renders -> (K, H, W) safe log of the intensity each event pixel sees, with the
     simulator's ``safe_log_torch`` and the scene's knee.
 
@@ -127,12 +142,18 @@ def log_intensity(renders: torch.Tensor, color_filter: str = "none", knee: float
     ("RGGB", "BGGR", "GRBG", "GBRG") the pixel's own channel of camera raw = ``raw_matrix`` @ linear sRGB
     (``ev3dgs.sensor.camera_raw_matrix(ccm, wb)``, the scene's /events attr camera_raw_matrix; None =
     identity), as the simulator's ColorFilterArray. For "display" the pixel's own display channel is used
-    (raw_matrix ignored). Computed as a per-pixel weighted sum (no gather/scatter): deterministic."""
+    (raw_matrix ignored). Computed as a per-pixel weighted sum (no gather/scatter): deterministic.
+    ``linear``: with transfer "srgb", the renders already decoded (``srgb_to_linear_torch(renders)``, shared
+    with blur_average), used instead of decoding again; ignored for the other transfers."""
     if renders.ndim != 4 or renders.shape[-1] != 3:
         raise ValueError(f"renders must be (K, H, W, 3), got {tuple(renders.shape)}")
     if transfer not in _TRANSFERS:
         raise ValueError(f"transfer must be one of {_TRANSFERS}, got {transfer!r}")
-    lin = srgb_to_linear_torch(renders) if transfer == "srgb" else renders
+    if transfer == "srgb":
+        lin = _check_linear(renders, linear)
+        lin = srgb_to_linear_torch(renders) if lin is None else lin
+    else:
+        lin = renders
     cf = (color_filter or "none")
     if cf.lower() == "none":
         w = torch.as_tensor(LUMA_601 if transfer == "display" else LUMINANCE_WEIGHTS, dtype=lin.dtype,

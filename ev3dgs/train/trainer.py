@@ -39,7 +39,7 @@ from .config import TrainConfig
 from .data import TrainData, load_train_data
 from .events import pair_list, pose_counts
 from .init import init_bounds
-from .losses import blur_average, blur_loss, log_intensity, pose_event_loss
+from .losses import average_loss, blur_average, log_intensity, pose_event_loss, srgb_to_linear_torch
 from .metrics import psnr
 from .rng import stream_generator, stream_seed
 
@@ -169,12 +169,18 @@ class Trainer:
             info["grad_scale"] = float(len(poses))  # each of b+1 renders gets ~1/(b+1) of the gradient
             self.strategy.step_pre_backward(info)
         target = data.images[v]
-        l_blur = blur_loss(stack, target, cfg.ssim_lambda, data.blur_space)  # "auto" resolved from the scene
+        # both losses decode the renders to linear light (blur average in linear light, events from linear
+        # intensity): decode once, so the decode and its backward run once per step
+        lin = (srgb_to_linear_torch(stack) if self.use_events and data.blur_space == "linear"
+               and data.event_transfer == "srgb" else None)
+        avg = blur_average(stack, data.blur_space, linear=lin)  # data.blur_space: "auto" resolved from the scene
+        l_blur = average_loss(avg, target, cfg.ssim_lambda)
         loss = l_blur
         l_event = torch.zeros((), device=self.device)
         if self.use_events:
             pairs = pair_list(len(poses), cfg.event_pairs or "all", self.pair_generator)
-            log_l = log_intensity(stack, data.color_filter, data.log_knee, data.event_transfer, data.raw_matrix)
+            log_l = log_intensity(stack, data.color_filter, data.log_knee, data.event_transfer, data.raw_matrix,
+                                  linear=lin)
             l_event = pose_event_loss(log_l, pose_counts(data.bins[v]), pairs, self.thresholds["pos"].exp(),
                                       self.thresholds["neg"].exp(), data.count_convention)
             loss = loss + cfg.event_weight * l_event
@@ -192,8 +198,8 @@ class Trainer:
             refined = self.strategy.step_post_backward(self.model, self.optimizers, self.strategy_state,
                                                        self.step, infos)
         self.step += 1
-        with torch.no_grad():  # the blurry frame as the loss sees it (averaged in data.blur_space)
-            p = psnr(blur_average(stack.detach(), data.blur_space).clamp(0, 1), target)
+        with torch.no_grad():  # the blurry frame as the loss saw it (averaged in data.blur_space)
+            p = psnr(avg.detach().clamp(0, 1), target)
         return {"step": self.step, "view": v, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
                 "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info}
 
@@ -213,8 +219,10 @@ class Trainer:
 
     def _guard(self, loss, l_blur, l_event) -> None:
         bad = not torch.isfinite(loss)
-        if not bad:
-            bad = any(p.grad is not None and not torch.isfinite(p.grad).all() for p in self.trained_parameters())
+        if not bad:  # a sum is finite only if every term is (inf or NaN anywhere makes it inf or NaN); a finite
+            # gradient whose sum overflows is told apart by the element-wise test, which only runs then
+            bad = any(p.grad is not None and not torch.isfinite(p.grad.sum()) and not torch.isfinite(p.grad).all()
+                      for p in self.trained_parameters())
         if bad:
             ckpt = self.run_dir / "ckpt.pt"
             where = f"the last good checkpoint is {ckpt}" if ckpt.exists() else "no checkpoint was written yet"
