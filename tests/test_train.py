@@ -131,7 +131,7 @@ def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path):
 def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypatch):
     import ev3dgs.train.trainer as T
 
-    real = T.blur_loss
+    real = T.average_loss
 
     def poisoned(*a, **k):
         out = real(*a, **k)
@@ -143,7 +143,7 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
         poisoned.calls += 1
         return poisoned(*a, **k)
 
-    monkeypatch.setattr(T, "blur_loss", counting)
+    monkeypatch.setattr(T, "average_loss", counting)
     tr = Trainer(cfg(scene_path), tmp_path / "run", quiet=True)
     with pytest.raises(TrainingError, match="non-finite loss.*step 25.*ckpt.pt"):
         tr.fit()

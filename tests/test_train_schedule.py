@@ -201,13 +201,18 @@ def _linear_to_srgb(v):
 @pytest.mark.parametrize("space", ["linear", "srgb"])
 def test_logged_psnr_blurry_averages_in_the_blur_space(scene, tmp_path, monkeypatch, space):
     seen = {}
-    real = T.blur_loss
+    real_avg, real_loss = T.blur_average, T.average_loss
 
-    def spy(renders, target, lam, sp):
-        seen.update(renders=renders.detach().double().numpy(), target=target.double().numpy(), space=sp)
-        return real(renders, target, lam, sp)
+    def spy_avg(renders, sp, **kw):                 # the sub-pose renders and the blur space the step averages in
+        seen.update(renders=renders.detach().double().numpy(), space=sp)
+        return real_avg(renders, sp, **kw)
 
-    monkeypatch.setattr(T, "blur_loss", spy)
+    def spy_loss(avg, target, lam):                 # the blurry frame the loss compares with
+        seen.update(target=target.double().numpy())
+        return real_loss(avg, target, lam)
+
+    monkeypatch.setattr(T, "blur_average", spy_avg)
+    monkeypatch.setattr(T, "average_loss", spy_loss)
     tr = Trainer(_cfg(scene, blur_space=space), tmp_path / space, quiet=True)
     real_render = tr.render
 
