@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import sys
 import time
 from dataclasses import replace
@@ -43,7 +42,7 @@ from ev3dgs.sim.scenes import builtin_scenes, load_scene, resolve_render  # noqa
 from ev3dgs.train.config import TrainConfig  # noqa: E402
 from ev3dgs.errors import InputError  # noqa: E402
 from ev3dgs.train.evaluate import evaluate  # noqa: E402
-from ev3dgs.train.jobs import run_parallel  # noqa: E402
+from ev3dgs.train.jobs import default_jobs, run_parallel  # noqa: E402
 from ev3dgs.train.lpips import load_lpips  # noqa: E402
 from ev3dgs.train.trainer import Trainer  # noqa: E402
 
@@ -270,7 +269,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", metavar="WxH", help="image size in pixels (default 96x72)")
     ap.add_argument("--views", type=int, help="training views per scene (default 24; --quick 12)")
     ap.add_argument("--test-views", type=int, help="novel (test) views per scene (default 8; --quick 4)")
-    ap.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)),
+    ap.add_argument("--jobs", type=int, default=default_jobs(),
                     help="runs at a time, one thread each (default: the CPU cores here, %(default)s)")
     ap.add_argument("--init-points", type=int, default=5000, help="random initial Gaussians (default %(default)s)")
     ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),

@@ -51,13 +51,13 @@ def worker(scene: str, iterations: int, threads: int, seed: int, densify: bool =
         steady = (marks["last"][0] - marks["first"][0]) / max(1, iterations - 1)
         cpu = (marks["last"][1] - marks["first"][1]) / max(1, iterations - 1)
         m = evaluate(Path(d) / "run", write_images=False)
+    # the Gaussian count changes with densification: CPU ms per step per 1000 Gaussians (mean count over the
+    # timed steps) compares runs whose models grew differently
+    mean_gaussians = sum(counts[1:]) / max(1, len(counts) - 1)
     return {"code": str(Path(ev3dgs.__file__).parent.parent), "threads": threads, "seed": seed,
             "iterations": iterations, "fit_seconds": seconds, "ms_per_step": 1e3 * steady,
-            "cpu_ms_per_step": 1e3 * cpu, "densify": densify,
-            # the Gaussian count changes with densification: CPU ms per step per 1000 Gaussians (mean count over
-            # the timed steps) compares runs whose models grew differently
-            "mean_gaussians": sum(counts[1:]) / max(1, len(counts) - 1),
-            "cpu_ms_per_step_per_1k": 1e6 * cpu / max(1.0, sum(counts[1:]) / max(1, len(counts) - 1)),
+            "cpu_ms_per_step": 1e3 * cpu, "densify": densify, "mean_gaussians": mean_gaussians,
+            "cpu_ms_per_step_per_1k": 1e6 * cpu / max(1.0, mean_gaussians),
             "test_psnr": m["test"]["psnr"], "train_sharp_psnr": m["train_sharp"]["psnr"],
             "gaussians": len(trainer.model)}
 
