@@ -36,6 +36,7 @@ TILE = 16
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
+FRAGMENT_BUDGET = 512 * 2 ** 20  # bytes of recorded fragments per call; above it the backward recomputes
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -152,14 +153,20 @@ def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
-             tiles_x, image, t_final, last, consts):
+             tiles_x, image, t_final, last, consts, frag_start, frag_pix, frag_e, frag_n):
     """All cameras at once: means2d (C,N,2), conics (C,N,3), colors (C,N,D), radii (C,N); global tile
-    c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W)."""
+    c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W).
+
+    Fragments (when frag_n has one entry per tile-list entry; else not recorded): tile-list entry k's
+    composited pixels, in the order they were composited, go to slots frag_start[k] ... (frag_n[k] of them,
+    at most the entry's box area): the pixel's index in its tile (frag_pix) and exp(-sigma) (frag_e), exactly
+    as computed here, so the backward replays them without recomputing or re-testing anything."""
     D = colors.shape[2]
     # consts = (0.5, 1, ALPHA_MAX, ALPHA_MIN, T_MIN) in the input dtype: with float32 inputs the maths stays
     # float32 (numba would promote to float64 on any Python float literal)
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
     n_tiles = tiles_x * (-(-height // TILE))
+    record = frag_n.shape[0] == ids.shape[0]
     for i in prange(work.shape[0]):
         gt = work[i]
         cam, tile = gt // n_tiles, gt % n_tiles
@@ -174,6 +181,9 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
         start, end = offsets[gt], offsets[gt + 1]
         for k in range(start, end):
             if n_done == P:
+                if record:  # the rest of the list composites nothing
+                    for kk in range(k, end):
+                        frag_n[kk] = 0
                 break
             g = ids[k]
             mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
@@ -185,6 +195,8 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
             # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
             bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
             ok, det, s = _span_params(a, b, c, smax)
+            nf = 0
+            fs = frag_start[k] if record else 0
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
@@ -196,7 +208,8 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
                     sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
                     if sigma < 0 or sigma > smax:  # beyond smax: alpha < 1/255, no exp needed
                         continue
-                    alpha = min(amax, o * np.exp(-sigma))
+                    e = np.exp(-sigma)
+                    alpha = min(amax, o * e)
                     if alpha < amin:
                         continue
                     nT = T[p] * (one - alpha)
@@ -209,6 +222,12 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
                         C[p, d] += col[d] * wgt
                     T[p] = nT
                     stop[p] = k + 1
+                    if record:
+                        frag_pix[fs + nf] = p
+                        frag_e[fs + nf] = e
+                        nf += 1
+            if record:
+                frag_n[k] = nf
         for p in range(P):
             px, py = x0 + p % w, y0 + p // w
             for d in range(D):
@@ -311,6 +330,108 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
 
 
 @njit(cache=True, nogil=True, parallel=True)
+def _backward_replay(means2d, conics, colors, opacities, offsets, ids, work, background, width, height, tiles_x,
+                     t_final, last, grad_image, grad_alpha, per_pair, consts, frag_start, frag_pix, frag_e, frag_n):
+    """_backward over the fragments the forward recorded: the same updates in the same order (so bitwise the
+    same per_pair), without the row spans, the exp and the tests (a recorded fragment is exactly a pixel that
+    _backward would process: k < stop[p], sigma in range, alpha >= 1/255)."""
+    D = colors.shape[2]
+    half, one, amax = consts[0], consts[1], consts[2]
+    zero = half - half
+    n_tiles = tiles_x * (-(-height // TILE))
+    for i in prange(work.shape[0]):
+        gt = work[i]
+        cam, tile = gt // n_tiles, gt % n_tiles
+        x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
+        P = w * h
+        T = np.empty(P, t_final.dtype)
+        S = np.empty((P, D), t_final.dtype)
+        G = np.empty((P, D), t_final.dtype)
+        GA = np.empty(P, t_final.dtype)
+        TF = np.empty(P, t_final.dtype)
+        gcol = np.empty(D, t_final.dtype)
+        col = np.empty(D, t_final.dtype)
+        kmax = offsets[gt]
+        for p in range(P):
+            px, py = x0 + p % w, y0 + p // w
+            T[p] = t_final[cam, py, px]
+            TF[p] = T[p]
+            kmax = max(kmax, last[cam, py, px])
+            GA[p] = grad_alpha[cam, py, px]
+            for d in range(D):
+                G[p, d] = grad_image[cam, py, px, d]
+                S[p, d] = T[p] * background[d]
+        for k in range(kmax - 1, offsets[gt] - 1, -1):
+            nf = frag_n[k]
+            if nf == 0:  # per_pair[k] stays 0, as _backward leaves it
+                continue
+            g = ids[k]
+            mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
+            a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
+            o = opacities[g]
+            gmx = gmy = ga = gb = gc = go = zero
+            for d in range(D):
+                gcol[d] = zero
+                col[d] = colors[cam, g, d]
+            fs = frag_start[k]
+            for j in range(fs, fs + nf):
+                p = np.int64(frag_pix[j])
+                dx = xs[p % w] - mx
+                dy = ys[p // w] - my
+                e = frag_e[j]
+                raw = o * e
+                alpha = min(amax, raw)
+                inv = one / (one - alpha)    # 1 - alpha >= 0.01
+                Ti = T[p] * inv              # transmittance in front of this Gaussian
+                wgt = alpha * Ti
+                cg = zero
+                sg = zero
+                for d in range(D):
+                    gcol[d] += wgt * G[p, d]
+                    cg += col[d] * G[p, d]
+                    sg += S[p, d] * G[p, d]
+                d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
+                for d in range(D):
+                    S[p, d] += col[d] * wgt
+                T[p] = Ti
+                if raw > amax:              # clamped: no gradient to opacity or the footprint
+                    continue
+                go += d_alpha * e
+                d_sigma = -d_alpha * alpha
+                gmx -= d_sigma * (a * dx + b * dy)
+                gmy -= d_sigma * (c * dy + b * dx)
+                ga += d_sigma * half * dx * dx
+                gb += d_sigma * dx * dy
+                gc += d_sigma * half * dy * dy
+            for d in range(D):
+                per_pair[k, 6 + d] = gcol[d]
+            per_pair[k, 0] += gmx
+            per_pair[k, 1] += gmy
+            per_pair[k, 2] += ga
+            per_pair[k, 3] += gb
+            per_pair[k, 4] += gc
+            per_pair[k, 5] += go
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _box_areas(means2d, radii, offsets, ids, width, height, tiles_x):
+    """Per tile-list entry, the pixel count of its Gaussian's radius box clipped to the tile: an upper bound
+    of the fragments the forward can record for it."""
+    n_tiles = tiles_x * (-(-height // TILE))
+    out = np.empty(ids.shape[0], np.int64)
+    for gt in prange(offsets.shape[0] - 1):
+        cam, tile = gt // n_tiles, gt % n_tiles
+        x0, y0 = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
+        w, h = min(TILE, width - x0), min(TILE, height - y0)
+        for k in range(offsets[gt], offsets[gt + 1]):
+            g = ids[k]
+            bx0, bx1, by0, by1 = _box(means2d[cam, g, 0], means2d[cam, g, 1], radii[cam, g], x0, y0,
+                                      x0 + w - 1, y0 + h - 1)
+            out[k] = max(0, bx1 - bx0 + 1) * max(0, by1 - by0 + 1)
+    return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
 def _reduce(ids, per_pair, offsets, n_cameras, n):
     """Per camera (in parallel: disjoint rows), a serial sum in tile-list order: (C, N, 6 + D)."""
     out = np.zeros((n_cameras, n, per_pair.shape[1]), per_pair.dtype)
@@ -347,6 +468,22 @@ def _work_order(offsets: np.ndarray) -> np.ndarray:
     return np.argsort(-cost, kind="stable").astype(np.int64)
 
 
+def _fragment_buffers(m, r, offsets, ids, width, height, tiles_x, dtype, record: bool) -> tuple:
+    """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
+    pixel of every tile-list entry's clipped radius box (an upper bound). Without ``record`` (no input needs a
+    gradient) or over FRAGMENT_BUDGET bytes, nothing is recorded (frag_n empty) and a backward recomputes."""
+    none = (np.zeros(1, np.int64), np.zeros(0, np.uint8), np.zeros(0, dtype), np.zeros(0, np.int32))
+    if not record or len(ids) == 0:
+        return none
+    areas = _parallel(_box_areas, m, r, offsets, ids, width, height, tiles_x)
+    start = np.zeros(len(ids) + 1, np.int64)
+    np.cumsum(areas, out=start[1:])
+    total = int(start[-1])
+    if total * (1 + np.dtype(dtype).itemsize) > FRAGMENT_BUDGET:
+        return none
+    return start, np.empty(total, np.uint8), np.empty(total, dtype), np.empty(len(ids), np.int32)
+
+
 def _consts(dtype) -> np.ndarray:
     return np.array([0.5, 1.0, ALPHA_MAX, ALPHA_MIN, T_MIN], dtype)
 
@@ -377,17 +514,19 @@ class _RasterizeCPU(torch.autograd.Function):
         image = np.empty((C, height, width, col.shape[2]), col.dtype)
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
+        frags = _fragment_buffers(m, r, offsets, ids, width, height, tiles_x, col.dtype,
+                                  record=any(ctx.needs_input_grad[:4]))
         _parallel(_forward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, image, t_final, last,
-                  _consts(col.dtype), chunk=1)
+                  _consts(col.dtype), *frags, chunk=1)
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
-        ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last)
+        ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last, frags)
         ctx.size = (width, height, tiles_x)
         alpha = torch.from_numpy(1.0 - t_final)[..., None]
         return torch.from_numpy(image), alpha
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha):
-        m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last = ctx.arrays
+        m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last, frags = ctx.arrays
         width, height, tiles_x = ctx.size
         C, N, D = col.shape
         gi = (np.zeros((C, height, width, D), col.dtype) if grad_image is None
@@ -395,8 +534,12 @@ class _RasterizeCPU(torch.autograd.Function):
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
         per_pair = np.zeros((len(ids), 6 + D), col.dtype)
-        _parallel(_backward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
-                  gi, ga, per_pair, _consts(col.dtype), chunk=1)
+        if frags[3].shape[0] == len(ids):  # the forward recorded its fragments: replay them
+            _parallel(_backward_replay, m, q, col, o, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
+                      gi, ga, per_pair, _consts(col.dtype), *frags, chunk=1)
+        else:
+            _parallel(_backward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
+                      gi, ga, per_pair, _consts(col.dtype), chunk=1)
         g = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None
