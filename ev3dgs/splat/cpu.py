@@ -8,12 +8,17 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
   Nothing is dropped: a Gaussian goes to every tile its (opacity-aware, exact) radius touches, so the
   per-tile lists hold every Gaussian that can reach a pixel.
 * forward: per tile, Gaussians outer and the tile's pixels inner; per pixel it keeps T and the index after
-  the last Gaussian it composited. Per row of a Gaussian's box only the pixels inside its cut-off ellipse
-  (sigma <= ln(255 o), solved per row, conservatively) are visited: about half of the box. Tiles run in
-  parallel (numba prange, handed out one at a time, most expensive first) when threads > 1.
+  the last Gaussian it composited. Per row of a Gaussian's box (at least SPAN_MIN_WIDTH wide) only the
+  pixels inside its cut-off ellipse (sigma <= ln(255 o), solved per row, conservatively) are visited: about
+  half of the box. Tiles run in parallel (numba prange, handed out one at a time, most expensive first)
+  when threads > 1. When a gradient will be needed it records every fragment it composites (the pixel's
+  index in its tile and exp(-sigma), in slots bounded by each entry's clipped box area; FRAGMENT_BUDGET caps
+  the memory).
 * backward: per tile, Gaussians in reverse depth order; T is recovered by dividing by (1 - alpha) >= 0.01,
   the colour behind each Gaussian is accumulated, and gradients go to a per-(tile, Gaussian) buffer that a
-  serial pass sums per Gaussian. No atomics, and the result does not depend on the thread count.
+  serial pass sums per Gaussian. No atomics, and the result does not depend on the thread count. It
+  replays the recorded fragments (no spans, exp or tests: ~2.4x faster than recomputing them); over the
+  budget it recomputes them (the same updates in the same order: bitwise the same gradients, tested).
 
 Batched: C cameras share one call. Their tile lists are concatenated (camera c's tile t is global tile
 c * n_tiles + t), so forward and backward are one parallel loop over (camera, tile), and the per-pair
@@ -36,6 +41,9 @@ TILE = 16
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
+# boxes narrower than this many pixels are walked whole: solving each row's span costs more than the pixels it
+# skips (measured on a trained demo model, radii 2-4 px: forward ~10 % faster; same pixels composited)
+SPAN_MIN_WIDTH = 10
 FRAGMENT_BUDGET = 512 * 2 ** 20  # bytes of recorded fragments per call; above it the backward recomputes
 
 
@@ -47,14 +55,17 @@ def _box(mx, my, r, xmin, ymin, xmax, ymax):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _span_params(a, b, c, smax):
+def _span_params(a, b, c, smax, box_width=1 << 30):
     """Per Gaussian, for _row_span: (ok, det, s) in float64. ``s`` is the kernel's cut-off sigma ``smax``
     raised by more than the rounding error of the kernel's sigma (so every pixel the kernel's exact test can
     accept lies inside the span): sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is evaluated in 4 roundings of
     relative size u <= 2^-24 (float32), each relative to a term, and the terms' absolute sum is at most
     (1 + rho) / (1 - rho) times sigma for the positive-definite form (rho = |b| / sqrt(ac) < 1), so an
     inflation of 1e-6 * (1 + rho) / (1 - rho) (> 16 u) relative, plus 1e-9 absolute, covers it. Not
-    positive definite (ok False): no span, the caller keeps the whole box row (the kernel skips sigma < 0)."""
+    positive definite (ok False): no span, the caller keeps the whole box row (the kernel skips sigma < 0).
+    Nor for a box narrower than SPAN_MIN_WIDTH (``box_width`` = x1 - x0): the whole row costs less there."""
+    if box_width < SPAN_MIN_WIDTH:
+        return False, 0.0, 0.0
     a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
     det = a64 * c64 - b64 * b64
     if not (a64 > 0.0 and det > 0.0):
@@ -194,7 +205,7 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
                 col[d] = colors[cam, g, d]
             # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
             bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
-            ok, det, s = _span_params(a, b, c, smax)
+            ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
             nf = 0
             fs = frag_start[k] if record else 0
             for py in range(by0, by1 + 1):
