@@ -1,0 +1,200 @@
+"""The `cpu` backend's backward kernels (see cpu.py): the recomputing one, the one that replays the forward's
+recorded fragments, and the per-camera, per-Gaussian sum of their per-(tile, Gaussian) gradients."""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from .cpu_tiles import TILE, _box, _row_span, _span_params, _tile
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
+              tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts):
+    """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...]."""
+    D = colors.shape[2]
+    half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
+    zero = half - half
+    n_tiles = tiles_x * (-(-height // TILE))
+    for i in prange(work.shape[0]):
+        gt = work[i]
+        cam, tile = gt // n_tiles, gt % n_tiles
+        x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
+        P = w * h
+        T = np.empty(P, t_final.dtype)
+        S = np.empty((P, D), t_final.dtype)
+        G = np.empty((P, D), t_final.dtype)
+        GA = np.empty(P, t_final.dtype)
+        TF = np.empty(P, t_final.dtype)
+        stop = np.empty(P, np.int64)
+        gcol = np.empty(D, t_final.dtype)
+        col = np.empty(D, t_final.dtype)
+        kmax = offsets[gt]
+        for p in range(P):
+            px, py = x0 + p % w, y0 + p // w
+            T[p] = t_final[cam, py, px]
+            TF[p] = T[p]
+            stop[p] = last[cam, py, px]
+            kmax = max(kmax, stop[p])
+            GA[p] = grad_alpha[cam, py, px]
+            for d in range(D):
+                G[p, d] = grad_image[cam, py, px, d]
+                S[p, d] = T[p] * background[d]
+        for k in range(kmax - 1, offsets[gt] - 1, -1):
+            g = ids[k]
+            mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
+            a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
+            o = opacities[g]
+            gmx = gmy = ga = gb = gc = go = zero
+            for d in range(D):
+                gcol[d] = zero
+                col[d] = colors[cam, g, d]
+            smax = sigma_max[g]
+            bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
+            ok, det, s = _span_params(a, b, c, smax)
+            for py in range(by0, by1 + 1):
+                dy = ys[py - y0] - my
+                rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
+                for px in range(rx0, rx1 + 1):
+                    p = (py - y0) * w + (px - x0)
+                    if k >= stop[p]:
+                        continue
+                    dx = xs[px - x0] - mx
+                    sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < 0 or sigma > smax:
+                        continue
+                    e = np.exp(-sigma)
+                    raw = o * e
+                    alpha = min(amax, raw)
+                    if alpha < amin:
+                        continue
+                    inv = one / (one - alpha)    # 1 - alpha >= 0.01
+                    Ti = T[p] * inv              # transmittance in front of this Gaussian
+                    wgt = alpha * Ti
+                    cg = zero
+                    sg = zero
+                    for d in range(D):
+                        gcol[d] += wgt * G[p, d]
+                        cg += col[d] * G[p, d]
+                        sg += S[p, d] * G[p, d]
+                    # dL/dalpha: own colour, everything behind (S, incl. background), the alpha output
+                    d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
+                    for d in range(D):
+                        S[p, d] += col[d] * wgt
+                    T[p] = Ti
+                    if raw > amax:              # clamped: no gradient to opacity or the footprint
+                        continue
+                    go += d_alpha * e
+                    d_sigma = -d_alpha * alpha
+                    gmx -= d_sigma * (a * dx + b * dy)
+                    gmy -= d_sigma * (c * dy + b * dx)
+                    ga += d_sigma * half * dx * dx
+                    gb += d_sigma * dx * dy
+                    gc += d_sigma * half * dy * dy
+            for d in range(D):
+                per_pair[k, 6 + d] = gcol[d]
+            per_pair[k, 0] += gmx
+            per_pair[k, 1] += gmy
+            per_pair[k, 2] += ga
+            per_pair[k, 3] += gb
+            per_pair[k, 4] += gc
+            per_pair[k, 5] += go
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _backward_replay(means2d, conics, colors, opacities, offsets, ids, work, background, width, height, tiles_x,
+                     t_final, last, grad_image, grad_alpha, per_pair, consts, frag_start, frag_pix, frag_e, frag_n):
+    """_backward over the fragments the forward recorded: the same updates in the same order (so bitwise the
+    same per_pair), without the row spans, the exp and the tests (a recorded fragment is exactly a pixel that
+    _backward would process: k < stop[p], sigma in range, alpha >= 1/255)."""
+    D = colors.shape[2]
+    half, one, amax = consts[0], consts[1], consts[2]
+    zero = half - half
+    n_tiles = tiles_x * (-(-height // TILE))
+    for i in prange(work.shape[0]):
+        gt = work[i]
+        cam, tile = gt // n_tiles, gt % n_tiles
+        x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
+        P = w * h
+        T = np.empty(P, t_final.dtype)
+        S = np.empty((P, D), t_final.dtype)
+        G = np.empty((P, D), t_final.dtype)
+        GA = np.empty(P, t_final.dtype)
+        TF = np.empty(P, t_final.dtype)
+        gcol = np.empty(D, t_final.dtype)
+        col = np.empty(D, t_final.dtype)
+        kmax = offsets[gt]
+        for p in range(P):
+            px, py = x0 + p % w, y0 + p // w
+            T[p] = t_final[cam, py, px]
+            TF[p] = T[p]
+            kmax = max(kmax, last[cam, py, px])
+            GA[p] = grad_alpha[cam, py, px]
+            for d in range(D):
+                G[p, d] = grad_image[cam, py, px, d]
+                S[p, d] = T[p] * background[d]
+        for k in range(kmax - 1, offsets[gt] - 1, -1):
+            nf = frag_n[k]
+            if nf == 0:  # per_pair[k] stays 0, as _backward leaves it
+                continue
+            g = ids[k]
+            mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
+            a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
+            o = opacities[g]
+            gmx = gmy = ga = gb = gc = go = zero
+            for d in range(D):
+                gcol[d] = zero
+                col[d] = colors[cam, g, d]
+            fs = frag_start[k]
+            for j in range(fs, fs + nf):
+                p = np.int64(frag_pix[j])
+                dx = xs[p % w] - mx
+                dy = ys[p // w] - my
+                e = frag_e[j]
+                raw = o * e
+                alpha = min(amax, raw)
+                inv = one / (one - alpha)    # 1 - alpha >= 0.01
+                Ti = T[p] * inv              # transmittance in front of this Gaussian
+                wgt = alpha * Ti
+                cg = zero
+                sg = zero
+                for d in range(D):
+                    gcol[d] += wgt * G[p, d]
+                    cg += col[d] * G[p, d]
+                    sg += S[p, d] * G[p, d]
+                d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
+                for d in range(D):
+                    S[p, d] += col[d] * wgt
+                T[p] = Ti
+                if raw > amax:              # clamped: no gradient to opacity or the footprint
+                    continue
+                go += d_alpha * e
+                d_sigma = -d_alpha * alpha
+                gmx -= d_sigma * (a * dx + b * dy)
+                gmy -= d_sigma * (c * dy + b * dx)
+                ga += d_sigma * half * dx * dx
+                gb += d_sigma * dx * dy
+                gc += d_sigma * half * dy * dy
+            for d in range(D):
+                per_pair[k, 6 + d] = gcol[d]
+            per_pair[k, 0] += gmx
+            per_pair[k, 1] += gmy
+            per_pair[k, 2] += ga
+            per_pair[k, 3] += gb
+            per_pair[k, 4] += gc
+            per_pair[k, 5] += go
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _reduce(ids, per_pair, offsets, n_cameras, n):
+    """Per camera (in parallel: disjoint rows), a serial sum in tile-list order: (C, N, 6 + D)."""
+    out = np.zeros((n_cameras, n, per_pair.shape[1]), per_pair.dtype)
+    n_tiles = (offsets.shape[0] - 1) // n_cameras
+    for c in prange(n_cameras):
+        for k in range(offsets[c * n_tiles], offsets[(c + 1) * n_tiles]):
+            g = ids[k]
+            for j in range(per_pair.shape[1]):
+                out[c, g, j] += per_pair[k, j]
+    return out
+
+
