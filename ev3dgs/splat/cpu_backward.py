@@ -1,5 +1,7 @@
 """The `cpu` backend's backward kernels (see cpu.py): the recomputing one, the one that replays the forward's
-recorded fragments, and the per-camera, per-Gaussian sum of their per-(tile, Gaussian) gradients."""
+recorded fragments, and the per-camera, per-Gaussian sum of their per-(tile, Gaussian) gradients. Both
+backward kernels run the same per-tile set-up (_tile_state) and the same per-fragment update (_fragment_grad),
+so they give bitwise the same gradients whenever they visit the same fragments in the same order."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,10 +10,81 @@ from numba import njit, prange
 from .cpu_tiles import TILE, _box, _row_span, _span_params, _tile
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha, background, first):
+    """Per pixel of a tile: T (final transmittance, walked back), S (colour behind, starting with the
+    background), G / GA (the image's and alpha's gradients), TF (final T), stop (one past the last entry it
+    composited); and kmax, one past the last entry any pixel composited (at least ``first``)."""
+    P = w * h
+    T = np.empty(P, t_final.dtype)
+    S = np.empty((P, D), t_final.dtype)
+    G = np.empty((P, D), t_final.dtype)
+    GA = np.empty(P, t_final.dtype)
+    TF = np.empty(P, t_final.dtype)
+    stop = np.empty(P, np.int64)
+    kmax = first
+    for p in range(P):
+        px, py = x0 + p % w, y0 + p // w
+        T[p] = t_final[cam, py, px]
+        TF[p] = T[p]
+        stop[p] = last[cam, py, px]
+        kmax = max(kmax, stop[p])
+        GA[p] = grad_alpha[cam, py, px]
+        for d in range(D):
+            G[p, d] = grad_image[cam, py, px, d]
+            S[p, d] = T[p] * background[d]
+    return T, S, G, GA, TF, stop, kmax
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fragment_grad(p, dx, dy, e, o, a, b, c, col, gcol, T, S, G, GA, TF, half, one, amax, acc):
+    """One fragment (pixel p of a Gaussian, exp(-sigma) = e), back to front: walks T and S back past it,
+    adds its colour gradient to gcol and returns the updated accumulators acc = (d mx, d my, d a, d b, d c,
+    d opacity)."""
+    D = col.shape[0]
+    gmx, gmy, ga, gb, gc, go = acc
+    raw = o * e
+    alpha = min(amax, raw)
+    inv = one / (one - alpha)    # 1 - alpha >= 0.01
+    Ti = T[p] * inv              # transmittance in front of this Gaussian
+    wgt = alpha * Ti
+    cg = half - half
+    sg = half - half
+    for d in range(D):
+        gcol[d] += wgt * G[p, d]
+        cg += col[d] * G[p, d]
+        sg += S[p, d] * G[p, d]
+    # dL/dalpha: own colour, everything behind (S, incl. background), the alpha output
+    d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
+    for d in range(D):
+        S[p, d] += col[d] * wgt
+    T[p] = Ti
+    if raw > amax:              # clamped: no gradient to opacity or the footprint
+        return gmx, gmy, ga, gb, gc, go
+    d_sigma = -d_alpha * alpha
+    return (gmx - d_sigma * (a * dx + b * dy), gmy - d_sigma * (c * dy + b * dx), ga + d_sigma * half * dx * dx,
+            gb + d_sigma * dx * dy, gc + d_sigma * half * dy * dy, go + d_alpha * e)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _store(per_pair, k, gcol, acc):
+    for d in range(gcol.shape[0]):
+        per_pair[k, 6 + d] = gcol[d]
+    gmx, gmy, ga, gb, gc, go = acc
+    per_pair[k, 0] += gmx
+    per_pair[k, 1] += gmy
+    per_pair[k, 2] += ga
+    per_pair[k, 3] += gb
+    per_pair[k, 4] += gc
+    per_pair[k, 5] += go
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
               tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts):
-    """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...]."""
+    """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...].
+    Recomputes each fragment: the pixels of the entry's spans that it composited (k < stop[p], sigma in
+    range, alpha >= 1/255)."""
     D = colors.shape[2]
     half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
     zero = half - half
@@ -20,38 +93,22 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
         gt = work[i]
         cam, tile = gt // n_tiles, gt % n_tiles
         x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
-        P = w * h
-        T = np.empty(P, t_final.dtype)
-        S = np.empty((P, D), t_final.dtype)
-        G = np.empty((P, D), t_final.dtype)
-        GA = np.empty(P, t_final.dtype)
-        TF = np.empty(P, t_final.dtype)
-        stop = np.empty(P, np.int64)
+        T, S, G, GA, TF, stop, kmax = _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha,
+                                                  background, offsets[gt])
         gcol = np.empty(D, t_final.dtype)
         col = np.empty(D, t_final.dtype)
-        kmax = offsets[gt]
-        for p in range(P):
-            px, py = x0 + p % w, y0 + p // w
-            T[p] = t_final[cam, py, px]
-            TF[p] = T[p]
-            stop[p] = last[cam, py, px]
-            kmax = max(kmax, stop[p])
-            GA[p] = grad_alpha[cam, py, px]
-            for d in range(D):
-                G[p, d] = grad_image[cam, py, px, d]
-                S[p, d] = T[p] * background[d]
         for k in range(kmax - 1, offsets[gt] - 1, -1):
             g = ids[k]
             mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
             a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
             o = opacities[g]
-            gmx = gmy = ga = gb = gc = go = zero
+            acc = (zero, zero, zero, zero, zero, zero)
             for d in range(D):
                 gcol[d] = zero
                 col[d] = colors[cam, g, d]
             smax = sigma_max[g]
             bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
-            ok, det, s = _span_params(a, b, c, smax)
+            ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
@@ -64,41 +121,10 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
                     if sigma < 0 or sigma > smax:
                         continue
                     e = np.exp(-sigma)
-                    raw = o * e
-                    alpha = min(amax, raw)
-                    if alpha < amin:
+                    if min(amax, o * e) < amin:
                         continue
-                    inv = one / (one - alpha)    # 1 - alpha >= 0.01
-                    Ti = T[p] * inv              # transmittance in front of this Gaussian
-                    wgt = alpha * Ti
-                    cg = zero
-                    sg = zero
-                    for d in range(D):
-                        gcol[d] += wgt * G[p, d]
-                        cg += col[d] * G[p, d]
-                        sg += S[p, d] * G[p, d]
-                    # dL/dalpha: own colour, everything behind (S, incl. background), the alpha output
-                    d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
-                    for d in range(D):
-                        S[p, d] += col[d] * wgt
-                    T[p] = Ti
-                    if raw > amax:              # clamped: no gradient to opacity or the footprint
-                        continue
-                    go += d_alpha * e
-                    d_sigma = -d_alpha * alpha
-                    gmx -= d_sigma * (a * dx + b * dy)
-                    gmy -= d_sigma * (c * dy + b * dx)
-                    ga += d_sigma * half * dx * dx
-                    gb += d_sigma * dx * dy
-                    gc += d_sigma * half * dy * dy
-            for d in range(D):
-                per_pair[k, 6 + d] = gcol[d]
-            per_pair[k, 0] += gmx
-            per_pair[k, 1] += gmy
-            per_pair[k, 2] += ga
-            per_pair[k, 3] += gb
-            per_pair[k, 4] += gc
-            per_pair[k, 5] += go
+                    acc = _fragment_grad(p, dx, dy, e, o, a, b, c, col, gcol, T, S, G, GA, TF, half, one, amax, acc)
+            _store(per_pair, k, gcol, acc)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -115,24 +141,10 @@ def _backward_replay(means2d, conics, colors, opacities, offsets, ids, work, bac
         gt = work[i]
         cam, tile = gt // n_tiles, gt % n_tiles
         x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
-        P = w * h
-        T = np.empty(P, t_final.dtype)
-        S = np.empty((P, D), t_final.dtype)
-        G = np.empty((P, D), t_final.dtype)
-        GA = np.empty(P, t_final.dtype)
-        TF = np.empty(P, t_final.dtype)
+        T, S, G, GA, TF, stop, kmax = _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha,
+                                                  background, offsets[gt])
         gcol = np.empty(D, t_final.dtype)
         col = np.empty(D, t_final.dtype)
-        kmax = offsets[gt]
-        for p in range(P):
-            px, py = x0 + p % w, y0 + p // w
-            T[p] = t_final[cam, py, px]
-            TF[p] = T[p]
-            kmax = max(kmax, last[cam, py, px])
-            GA[p] = grad_alpha[cam, py, px]
-            for d in range(D):
-                G[p, d] = grad_image[cam, py, px, d]
-                S[p, d] = T[p] * background[d]
         for k in range(kmax - 1, offsets[gt] - 1, -1):
             nf = frag_n[k]
             if nf == 0:  # per_pair[k] stays 0, as _backward leaves it
@@ -141,48 +153,16 @@ def _backward_replay(means2d, conics, colors, opacities, offsets, ids, work, bac
             mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
             a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
             o = opacities[g]
-            gmx = gmy = ga = gb = gc = go = zero
+            acc = (zero, zero, zero, zero, zero, zero)
             for d in range(D):
                 gcol[d] = zero
                 col[d] = colors[cam, g, d]
             fs = frag_start[k]
             for j in range(fs, fs + nf):
                 p = np.int64(frag_pix[j])
-                dx = xs[p % w] - mx
-                dy = ys[p // w] - my
-                e = frag_e[j]
-                raw = o * e
-                alpha = min(amax, raw)
-                inv = one / (one - alpha)    # 1 - alpha >= 0.01
-                Ti = T[p] * inv              # transmittance in front of this Gaussian
-                wgt = alpha * Ti
-                cg = zero
-                sg = zero
-                for d in range(D):
-                    gcol[d] += wgt * G[p, d]
-                    cg += col[d] * G[p, d]
-                    sg += S[p, d] * G[p, d]
-                d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
-                for d in range(D):
-                    S[p, d] += col[d] * wgt
-                T[p] = Ti
-                if raw > amax:              # clamped: no gradient to opacity or the footprint
-                    continue
-                go += d_alpha * e
-                d_sigma = -d_alpha * alpha
-                gmx -= d_sigma * (a * dx + b * dy)
-                gmy -= d_sigma * (c * dy + b * dx)
-                ga += d_sigma * half * dx * dx
-                gb += d_sigma * dx * dy
-                gc += d_sigma * half * dy * dy
-            for d in range(D):
-                per_pair[k, 6 + d] = gcol[d]
-            per_pair[k, 0] += gmx
-            per_pair[k, 1] += gmy
-            per_pair[k, 2] += ga
-            per_pair[k, 3] += gb
-            per_pair[k, 4] += gc
-            per_pair[k, 5] += go
+                acc = _fragment_grad(p, xs[p % w] - mx, ys[p // w] - my, frag_e[j], o, a, b, c, col, gcol, T, S, G,
+                                     GA, TF, half, one, amax, acc)
+            _store(per_pair, k, gcol, acc)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -196,5 +176,3 @@ def _reduce(ids, per_pair, offsets, n_cameras, n):
             for j in range(per_pair.shape[1]):
                 out[c, g, j] += per_pair[k, j]
     return out
-
-
