@@ -203,7 +203,8 @@ def test_align_similarity_recovers_a_known_transform(seed):
     assert abs(s2 - s) < 1e-9 and np.abs(R2 - R).max() < 1e-9 and np.abs(t2 - t).max() < 1e-9
 
 
-def test_known_scene_one_perturbed_camera_moves_toward_the_truth():
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_known_scene_one_perturbed_camera_moves_toward_the_truth(frame):
     """A few fixed Gaussians, one camera whose trajectory is off by 1 degree and 2% of its distance; the
     blur loss against renders at the true trajectory, through the cpu backend's camera gradient. Gauge
     'none': the scene is known, nothing else can move. The Gaussians fill a deep box and the field of view is
@@ -225,7 +226,7 @@ def test_known_scene_one_perturbed_camera_moves_toward_the_truth():
     start[:, :3, :3] = err[:3, :3] @ true[:, :3, :3]
     start[:, :3, 3] += 0.02 * 3.0 * np.array([0.0, 0.6, -0.8])
     r = PoseRefiner(start[None], np.array([[0, 500, 1000]]), np.array([[0.0, 0.5, 1.0]]), 3.0, lr=5e-3,
-                    lr_final=0.05, iterations=200, gauge="none")
+                    lr_final=0.05, iterations=200, gauge="none", frame=frame)
 
     def render(vm):
         return rasterization(means, quats, scales, opac, cols, vm, K, W, H, backend="cpu")[0]
