@@ -306,10 +306,12 @@ def test_eval_uses_the_trajectory_and_cli_refusals(scene, tmp_path, capsys):
     out = tmp_path / "run"
     assert cli.main(["train", scene, "--out", str(out), "--iterations", "3", "--init-points", "200",
                      "--subposes", "3", "--sh-degree", "0", "--device", "cpu", "--refine-poses", "--pose-start",
-                     "0", "--quiet"]) == 0
+                     "0", "--pose-frame", "camera", "--quiet"]) == 0
     assert (out / "trajectory.npz").is_file()
     cfg = json.loads((out / "config.json").read_text())
-    assert cfg["refine_poses"] is True
+    assert cfg["refine_poses"] is True and cfg["pose_frame"] == "camera"
+    with np.load(out / "trajectory.npz") as z:
+        assert str(z["frame"]) == "camera" and z["frame_rotations"].shape == (4, 3, 3)
     for bad in (["--pose-lr", "0"], ["--pose-max-rotation", "-1"], ["--refine-poses", "--oracle"],
                 ["--pose-gauge", "mean"], ["--pose-frame", "body"]):
         with pytest.raises(SystemExit) if bad[0] in ("--pose-gauge", "--pose-frame") else _no_raise():
