@@ -333,6 +333,12 @@ def test_runs_saved_before_pose_frame_are_world_frame_runs(scene, tmp_path):
     del data["pose_frame"]
     (tmp_path / "config.json").write_text(json.dumps(data))
     assert TrainConfig.load(tmp_path / "config.json").pose_frame == "world"
+    from ev3dgs.errors import ConfigError
+    from ev3dgs.train.checkpoint import check_compatible
+
+    check_compatible(tmp_path / "ckpt.pt", {"config": data}, _cfg(scene, pose_frame="world"), None)
+    with pytest.raises(ConfigError, match="pose_frame: saved 'world' vs given 'camera'"):
+        check_compatible(tmp_path / "ckpt.pt", {"config": data}, _cfg(scene, pose_frame="camera"), None)
     state = _refiner().state_dict()
     del state["frame"]
     _refiner().load_state_dict(state)
