@@ -86,6 +86,90 @@ def test_gauge_projection_removes_exactly_the_similarity_component():
     assert np.abs((moved - ends) / 3.3 / s - gauge_basis(ends, 3.3)[:, :3, 6]).max() < 1e-9
 
 
+def _set(r, P):
+    with torch.no_grad():
+        for v, p in enumerate(r.params):
+            p.copy_(torch.as_tensor(P[v], dtype=F64))
+
+
+def test_camera_frame_is_the_world_frame_in_the_mid_cameras_axes():
+    """--pose-frame camera: (rho, omega) in the axes of the view's mid-exposure camera Q. Checked against the
+    world frame with (Q rho, Q omega) (the documented change of coordinates) and, at the mid sub-pose, against
+    the right perturbation R Exp(omega), c + s R rho written out in numpy (geometry.rotvec_to_matrix)."""
+    cam, world = _refiner(frame="camera"), _refiner(frame="world")
+    rng = np.random.default_rng(2)
+    xi = rng.normal(0, 0.02, (4, 2, 6))
+    Q = cam.c2w0[:, 1, :3, :3]  # the sub-pose at fraction 0.5 of _refiner's (0, 0.5, 1)
+    assert np.array_equal(cam.Q, Q)
+    _set(cam, xi)
+    rot = lambda a: np.einsum("nij,nkj->nki", Q, a)  # noqa: E731  per view, Q @ each endpoint's 3-vector
+    _set(world, np.concatenate([rot(xi[..., :3]), rot(xi[..., 3:])], -1))
+    got, ref = cam.all_c2w(), world.all_c2w()
+    assert np.abs(got - ref).max() < 1e-14  # the same products in another order: a few ulp
+    x = 0.5 * (xi[:, 0] + xi[:, 1])
+    for v in range(4):
+        R, c = cam.c2w0[v, 1, :3, :3], cam.c2w0[v, 1, :3, 3]
+        assert np.abs(got[v, 1, :3, :3] - R @ rotvec_to_matrix(x[v, 3:])).max() < 1e-12
+        assert np.abs(got[v, 1, :3, 3] - (c + 3.3 * R @ x[v, :3])).max() < 1e-12
+    # omega_z alone is a roll: the optical axis (third column) of the mid camera does not move
+    _set(cam, np.tile([0, 0, 0, 0, 0, 0.03], (4, 2, 1)))
+    roll = cam.all_c2w()
+    assert np.abs(roll[:, 1, :3, 2] - cam.c2w0[:, 1, :3, 2]).max() < 1e-15
+    assert np.abs(roll[:, 1, :3, 0] - cam.c2w0[:, 1, :3, 0]).max() > 0.02
+    tw = cam.table(world=True)
+    assert np.abs(tw[..., 3:] - rot(np.tile([0, 0, 0.03], (4, 2, 1)))).max() < 1e-16
+
+
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_pose_gradient_matches_finite_differences(frame):
+    """d(viewmat)/d(corrections) through the frame rotation, the interpolation, Exp and the rigid inverse,
+    against central differences in float64 (torch.autograd.gradcheck)."""
+    r = _refiner(frame=frame)
+    x0 = torch.tensor(np.random.default_rng(3).normal(0, 0.05, (2, 6)), dtype=F64, requires_grad=True)
+
+    def f(x):
+        r.params[1] = x
+        return r.viewmats(1, F64)
+
+    assert torch.autograd.gradcheck(f, (x0,), eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+def _similarity_in_camera_axes(r, w, tau, s):
+    """The first-order change of every endpoint's camera-frame correction under a similarity (w, tau, s) about
+    the mean endpoint centre, written out per endpoint (not with gauge_basis): world (rho, omega) =
+    ((w x (c - o) + tau + s (c - o)) / scale, w), then rotated into the view's axes Q^T."""
+    out = np.zeros((r.N, 2, 6))
+    ends = [r.c2w0[:, 0, :3, 3], r.c2w0[:, -1, :3, 3]]
+    o = np.concatenate(ends).mean(0)
+    for e, c in enumerate(ends):
+        for v in range(r.N):
+            d = c[v] - o
+            out[v, e, :3] = r.Q[v].T @ ((np.cross(w, d) + tau + s * d) / r.scene_scale)
+            out[v, e, 3:] = r.Q[v].T @ w
+    return out
+
+
+def test_camera_frame_gauge_removes_exactly_a_similarity_and_keeps_the_rest():
+    r = _refiner(n=5, frame="camera")
+    rng = np.random.default_rng(4)
+    z, e = np.zeros(3), np.eye(3)
+    generators = [(e[i], z, 0.0) for i in range(3)] + [(z, e[i], 0.0) for i in range(3)] + [(z, z, 1.0)]
+    gens = [_similarity_in_camera_axes(r, *g) for g in generators]
+    B = np.stack([g.reshape(-1) for g in gens], 1)  # (60, 7) in the params' (view, endpoint, 6) order
+    sim = _similarity_in_camera_axes(r, rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3), 0.01)
+    free = rng.normal(0, 0.01, B.shape[0])
+    free -= B @ np.linalg.lstsq(B, free, rcond=None)[0]  # orthogonal to every similarity
+    _set(r, sim)
+    r._project()
+    assert np.abs(torch.stack(r.params).detach().numpy()).max() < 1e-12  # a pure similarity: removed
+    _set(r, free.reshape(5, 2, 6))
+    r._project()
+    assert np.abs(torch.stack(r.params).detach().numpy().reshape(-1) - free).max() < 1e-12  # kept
+    _set(r, sim + free.reshape(5, 2, 6))
+    r._project()
+    assert np.abs(torch.stack(r.params).detach().numpy().reshape(-1) - free).max() < 1e-12
+
+
 def test_guard_clamps_and_skips_non_finite_steps():
     r = _refiner(gauge="none", max_rotation_deg=2.0, max_translation=0.05)
     with torch.no_grad():
@@ -119,7 +203,8 @@ def test_align_similarity_recovers_a_known_transform(seed):
     assert abs(s2 - s) < 1e-9 and np.abs(R2 - R).max() < 1e-9 and np.abs(t2 - t).max() < 1e-9
 
 
-def test_known_scene_one_perturbed_camera_moves_toward_the_truth():
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_known_scene_one_perturbed_camera_moves_toward_the_truth(frame):
     """A few fixed Gaussians, one camera whose trajectory is off by 1 degree and 2% of its distance; the
     blur loss against renders at the true trajectory, through the cpu backend's camera gradient. Gauge
     'none': the scene is known, nothing else can move. The Gaussians fill a deep box and the field of view is
@@ -141,7 +226,7 @@ def test_known_scene_one_perturbed_camera_moves_toward_the_truth():
     start[:, :3, :3] = err[:3, :3] @ true[:, :3, :3]
     start[:, :3, 3] += 0.02 * 3.0 * np.array([0.0, 0.6, -0.8])
     r = PoseRefiner(start[None], np.array([[0, 500, 1000]]), np.array([[0.0, 0.5, 1.0]]), 3.0, lr=5e-3,
-                    lr_final=0.05, iterations=200, gauge="none")
+                    lr_final=0.05, iterations=200, gauge="none", frame=frame)
 
     def render(vm):
         return rasterization(means, quats, scales, opac, cols, vm, K, W, H, backend="cpu")[0]
@@ -179,8 +264,9 @@ def _cfg(scene, **kw):
     return TrainConfig(**base)
 
 
-def test_training_with_refinement_is_reproducible_saves_and_evaluates(scene, tmp_path):
-    cfg = _cfg(scene)
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_training_with_refinement_is_reproducible_saves_and_evaluates(scene, tmp_path, frame):
+    cfg = _cfg(scene, pose_frame=frame)
     one = _train(cfg, tmp_path / "a", torch_threads=1, numba_threads=1)
     two = _train(TrainConfig(**{**cfg.__dict__, "threads": 2}), tmp_path / "b", torch_threads=2, numba_threads=2)
     two["config"]["threads"] = None
@@ -192,12 +278,13 @@ def test_training_with_refinement_is_reproducible_saves_and_evaluates(scene, tmp
     assert np.array_equal(np.load(tmp_path / "b" / "trajectory.npz")["poses"], tj["poses"])
 
 
-def test_resume_continues_the_refinement_exactly(scene, tmp_path):
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_resume_continues_the_refinement_exactly(scene, tmp_path, frame):
     from ev3dgs.train.trainer import Trainer
 
-    whole = Trainer(_cfg(scene, iterations=8, checkpoint_every=4), tmp_path / "w", quiet=True)
+    whole = Trainer(_cfg(scene, iterations=8, checkpoint_every=4, pose_frame=frame), tmp_path / "w", quiet=True)
     whole.fit()
-    part = Trainer(_cfg(scene, iterations=8, checkpoint_every=4), tmp_path / "p", quiet=True)
+    part = Trainer(_cfg(scene, iterations=8, checkpoint_every=4, pose_frame=frame), tmp_path / "p", quiet=True)
 
     def stop(trainer, rec):  # a run killed right after its step-4 checkpoint
         if trainer.step == 5:
@@ -205,23 +292,29 @@ def test_resume_continues_the_refinement_exactly(scene, tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         part.fit(on_step=stop)
-    rest = Trainer(_cfg(scene, iterations=8, checkpoint_every=4), tmp_path / "p", quiet=True)
+    rest = Trainer(_cfg(scene, iterations=8, checkpoint_every=4, pose_frame=frame), tmp_path / "p", quiet=True)
     rest.fit(resume=True)
     a, b = whole.pose_refiner.state_dict(), rest.pose_refiner.state_dict()
-    assert torch.equal(a["params"], b["params"])
+    assert torch.equal(a["params"], b["params"]) and a["frame"] == b["frame"] == frame
+    assert np.abs(a["params"].numpy()).max() > 0
+    with np.load(tmp_path / "p" / "trajectory.npz") as z:
+        assert str(z["frame"]) == frame
+        assert np.array_equal(z["poses"], np.load(tmp_path / "w" / "trajectory.npz")["poses"])
 
 
 def test_eval_uses_the_trajectory_and_cli_refusals(scene, tmp_path, capsys):
     out = tmp_path / "run"
     assert cli.main(["train", scene, "--out", str(out), "--iterations", "3", "--init-points", "200",
                      "--subposes", "3", "--sh-degree", "0", "--device", "cpu", "--refine-poses", "--pose-start",
-                     "0", "--quiet"]) == 0
+                     "0", "--pose-frame", "camera", "--quiet"]) == 0
     assert (out / "trajectory.npz").is_file()
     cfg = json.loads((out / "config.json").read_text())
-    assert cfg["refine_poses"] is True
+    assert cfg["refine_poses"] is True and cfg["pose_frame"] == "camera"
+    with np.load(out / "trajectory.npz") as z:
+        assert str(z["frame"]) == "camera" and z["frame_rotations"].shape == (4, 3, 3)
     for bad in (["--pose-lr", "0"], ["--pose-max-rotation", "-1"], ["--refine-poses", "--oracle"],
-                ["--pose-gauge", "mean"]):
-        with pytest.raises(SystemExit) if bad[0] == "--pose-gauge" else _no_raise():
+                ["--pose-gauge", "mean"], ["--pose-frame", "body"]):
+        with pytest.raises(SystemExit) if bad[0] in ("--pose-gauge", "--pose-frame") else _no_raise():
             assert cli.main(["train", scene, "--out", str(tmp_path / "x"), "--refine-poses", *bad]) == 2
     (out / "trajectory.npz").write_bytes(b"not a zip")
     from ev3dgs.errors import InputError
@@ -229,6 +322,30 @@ def test_eval_uses_the_trajectory_and_cli_refusals(scene, tmp_path, capsys):
 
     with pytest.raises(InputError, match="trajectory.npz"):
         evaluate(out, device="cpu", write_images=False)
+
+
+def test_runs_saved_before_pose_frame_are_world_frame_runs(scene, tmp_path):
+    """config.json / checkpoints written before --pose-frame existed hold world-frame corrections: loading
+    them gives pose_frame "world" whatever today's default, and a refiner refuses another frame's state."""
+    from ev3dgs.errors import InputError
+
+    data = json.loads(json.dumps(_cfg(scene).__dict__))
+    del data["pose_frame"]
+    (tmp_path / "config.json").write_text(json.dumps(data))
+    assert TrainConfig.load(tmp_path / "config.json").pose_frame == "world"
+    from ev3dgs.errors import ConfigError
+    from ev3dgs.train.checkpoint import check_compatible
+
+    check_compatible(tmp_path / "ckpt.pt", {"config": data}, _cfg(scene, pose_frame="world"), None)
+    with pytest.raises(ConfigError, match="pose_frame: saved 'world' vs given 'camera'"):
+        check_compatible(tmp_path / "ckpt.pt", {"config": data}, _cfg(scene, pose_frame="camera"), None)
+    state = _refiner().state_dict()
+    del state["frame"]
+    _refiner().load_state_dict(state)
+    with pytest.raises(InputError, match="frame"):
+        _refiner(frame="camera").load_state_dict(state)
+    with pytest.raises(Exception, match="pose-frame"):
+        TrainConfig(scene=scene, pose_frame="body")
 
 
 class _no_raise:

@@ -19,17 +19,22 @@ def test_refinement_reduces_pose_error_and_improves_blur_views(tmp_path):
 
     out = tmp_path / "study.json"
     assert study_refine.main(["--quick", "--size", "48x36", "--views", "6", "--iterations", "400",
+                              "--pose-frame", "world", "camera",
                               "--json", str(out), "--plot", str(tmp_path / "study.png")]) == 0
     d = json.loads(out.read_text())
     before = d["pose_errors_before"]
     assert abs(before["rotation_deg_mean_unaligned"] - 1.0) < 1e-6  # the perturbation is what it says
-    ref = next(v for k, v in d["runs"].items() if "refine" in k)
+    assert d["pose_frames"] == ["world", "camera"]
+    refined = {v["pose_frame"]: v for k, v in d["runs"].items() if "refine" in k}
+    assert sorted(refined) == ["camera", "world"]
     pert, true = d["runs"]["perturbed"], d["runs"]["true poses"]
     # a statistical outcome of one seeded run (the optimisation is deterministic on the CPU): the study at
-    # 64x48 / 500 steps measured 1.00 -> 0.79 deg and +5.0 dB; the bounds ask for the direction and a margin
-    assert ref["pose_errors_after"]["rotation_deg_median"] < before["rotation_deg_median"]
-    assert ref["blur_view_psnr"] > pert["blur_view_psnr"] + 1.0
-    assert ref["blur_view_psnr"] > pert["blur_view_psnr_training_poses"]
+    # 64x48 / 500 steps measured 1.00 -> 0.79 deg and +5.0 dB; the bounds ask for the direction and a margin.
+    # Here (48x36, 400 steps) seen: 0.95 -> 0.87 (world) / 0.86 (camera) deg, +4.4 dB in both frames
+    for ref in refined.values():
+        assert ref["pose_errors_after"]["rotation_deg_median"] < before["rotation_deg_median"]
+        assert ref["blur_view_psnr"] > pert["blur_view_psnr"] + 1.0
+        assert ref["blur_view_psnr"] > pert["blur_view_psnr_training_poses"]
+        assert "novel_view_psnr_unaligned" in ref and ref["pose_steps_skipped"] == 0
     assert true["blur_view_psnr"] > pert["blur_view_psnr"]
-    assert "novel_view_psnr_unaligned" in ref and ref["pose_steps_skipped"] == 0
     assert (tmp_path / "study.png").stat().st_size > 0

@@ -202,6 +202,7 @@ def _copy(run: Path, dst: Path) -> Path:
     (["--seed", "0"], "seed: saved 4 vs given 0"),          # given, although equal to the CLI default
     (["--subposes", "4"], "subposes: saved 3 vs given 4"),
     (["--sh-degree", "2", "--seed", "9"], "sh_degree: saved 1 vs given 2; seed: saved 4 vs given 9"),
+    (["--pose-frame", "camera"], "pose_frame: saved 'world' vs given 'camera'"),
 ])
 def test_resume_with_other_settings_is_refused(scene, finished_run, tmp_path, capsys, flags, diff):
     run = _copy(finished_run, tmp_path / "run")

@@ -60,7 +60,8 @@ def split_errors(refined_mid: np.ndarray, true_mid: np.ndarray, K: np.ndarray, b
     return out
 
 
-def analyse(keep: Path, scene: Path, seed: int, rot_deg: float, trans_frac: float, lr: float) -> dict:
+def analyse(keep: Path, scene: Path, seed: int, rot_deg: float, trans_frac: float, lr: float,
+            frame: str = "world") -> dict:
     import study_refine
     from ev3dgs import schema
     from ev3dgs.train.pose_refine import load_trajectory
@@ -71,7 +72,7 @@ def analyse(keep: Path, scene: Path, seed: int, rot_deg: float, trans_frac: floa
     with tempfile.TemporaryDirectory() as d:  # the perturbation is seeded: re-derive the truth it started from
         truth = study_refine.perturb_scene(str(scene), Path(d) / "p.h5", rot_deg, trans_frac, seed)
     run = keep if (keep / "trajectory.npz").is_file() else \
-        keep / "runs" / f"s{seed}" / f"perturbed_+_refine_lr_{lr:g}"
+        keep / "runs" / f"s{seed}" / study_refine.run_folder(study_refine.refine_name(lr, frame))
     if not (run / "trajectory.npz").is_file():
         raise SystemExit(f"error: no refined run at {run}")
     tj = load_trajectory(run / "trajectory.npz", len(truth["true_mid"]))
@@ -79,7 +80,8 @@ def analyse(keep: Path, scene: Path, seed: int, rot_deg: float, trans_frac: floa
     before = split_errors(truth["perturbed_mid"], truth["true_mid"], K, bounds)
     after = split_errors(refined, truth["true_mid"], K, bounds)
     med = lambda v: float(np.median(v))  # noqa: E731
-    return {"keep": str(keep), "scene": scene.name, "pose_lr": lr, "size": f"{sc.camera.width}x{sc.camera.height}",
+    return {"keep": str(keep), "scene": scene.name, "pose_lr": lr, "pose_frame": frame, "run": run.name,
+            "size": f"{sc.camera.width}x{sc.camera.height}",
             "iterations": json.loads((run / "config.json").read_text()).get("iterations"), "seed": seed,
             "before": {k: med(v) for k, v in before.items()}, "after": {k: med(v) for k, v in after.items()},
             "after_per_view": after}
@@ -95,6 +97,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="the study seeds, one for all or one per KEEP_DIR (default 0)")
     p.add_argument("--pose-lr", type=float, nargs="+", default=[3e-3],
                    help="the refined runs' learning rates, one for all or one per KEEP_DIR (default 3e-3)")
+    p.add_argument("--pose-frame", nargs="+", choices=("world", "camera"), default=["world"],
+                   help="the refined runs' frames (study_refine --pose-frame), one for all or one per KEEP_DIR "
+                        "(default world)")
     p.add_argument("--rot-deg", type=float, default=1.0, help="the study's rotation error, degrees (default 1)")
     p.add_argument("--trans-frac", type=float, default=0.02,
                    help="the study's translation error, fraction of the camera distance (default 0.02)")
@@ -102,17 +107,20 @@ def main(argv: list[str] | None = None) -> int:
                    help="results (default tools/results/refine_compensation.json)")
     a = p.parse_args(argv)
     n = len(a.keep)
-    for name, v in (("--scene", a.scene), ("--seed", a.seed), ("--pose-lr", a.pose_lr)):
+    for name, v in (("--scene", a.scene), ("--seed", a.seed), ("--pose-lr", a.pose_lr),
+                    ("--pose-frame", a.pose_frame)):
         if v is not None and len(v) not in (1, n):
             raise SystemExit(f"error: {name} takes one value or one per KEEP_DIR ({n}), not {len(v)}")
     pick = lambda v, i: v[0] if len(v) == 1 else v[i]  # noqa: E731
     rows = []
     for i, k in enumerate(a.keep):
         scene = Path(pick(a.scene, i)) if a.scene else Path(k) / "scene" / "lego.h5"
-        r = analyse(Path(k), scene, pick(a.seed, i), a.rot_deg, a.trans_frac, pick(a.pose_lr, i))
+        r = analyse(Path(k), scene, pick(a.seed, i), a.rot_deg, a.trans_frac, pick(a.pose_lr, i),
+                    pick(a.pose_frame, i))
         rows.append(r)
         b, f = r["before"], r["after"]
-        print(f"{r['size']:>6} {r['iterations']} steps seed {r['seed']} {r['scene']}: px before full "
+        print(f"{r['size']:>6} {r['iterations']} steps seed {r['seed']} {r['scene']} {r['pose_frame']}: px before "
+              f"full "
               f"{b['full']:.2f} (rotation only "
               f"{b['rotation_only']:.2f}, centre only {b['centre_only']:.2f}); after full {f['full']:.2f} "
               f"(rotation only {f['rotation_only']:.2f}, centre only {f['centre_only']:.2f}); rotation deg "

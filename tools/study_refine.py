@@ -7,7 +7,8 @@ scene. Three trainings, same seed and settings (blur + event losses):
 
 * "true poses": the scene as simulated (the upper bound);
 * "perturbed": the perturbed copy, poses kept fixed;
-* "perturbed + refine": the perturbed copy with --refine-poses (and, unless --quick, a second learning rate).
+* "perturbed + refine": the perturbed copy with --refine-poses (and, unless --quick, a second learning rate;
+  with ``--pose-frame world camera`` each learning rate in both frames of the corrections).
 
 Reported: mid-exposure rotation / centre errors of the training cameras against the truth before and after
 refinement (``geometry.pose_errors``: similarity-aligned centres, orientation-aligned rotations, so the
@@ -145,6 +146,16 @@ def errors(est_mid, true_mid, K, bounds) -> dict:
     return e
 
 
+def refine_name(lr: float, frame: str) -> str:
+    """The run's name: "perturbed + refine (lr 0.003)" for world-frame corrections (the name the study used
+    before --pose-frame existed), "perturbed + refine (lr 0.003, camera)" for camera-frame ones."""
+    return f"perturbed + refine (lr {lr:g})" if frame == "world" else f"perturbed + refine (lr {lr:g}, {frame})"
+
+
+def run_folder(name: str) -> str:
+    return name.replace(" ", "_").replace("(", "").replace(")", "").replace(",", "")
+
+
 def study_one(args, scene: str, d: Path, seed: int, iterations: int, lrs: list[float]) -> dict:
     """One perturbation + training seed: perturb, train the runs, evaluate; the per-seed JSON block."""
     pert = d / f"perturbed_s{seed}.h5"
@@ -158,10 +169,12 @@ def study_one(args, scene: str, d: Path, seed: int, iterations: int, lrs: list[f
     runs = {} if args.skip_true else {"true poses": base}
     runs["perturbed"] = replace(base, scene=str(pert))
     for lr in lrs:
-        runs[f"perturbed + refine (lr {lr:g})"] = replace(base, scene=str(pert), refine_poses=True, pose_lr=lr)
+        for frame in args.pose_frame:
+            runs[refine_name(lr, frame)] = replace(base, scene=str(pert), refine_poses=True, pose_lr=lr,
+                                                   pose_frame=frame)
     results = {}
     for name, cfg in runs.items():
-        run_dir = d / "runs" / f"s{seed}" / name.replace(" ", "_").replace("(", "").replace(")", "")
+        run_dir = d / "runs" / f"s{seed}" / run_folder(name)
         r = train_and_eval(cfg, run_dir, reuse=args.reuse)
         m, model = r.pop("metrics"), r.pop("model")
         row = {**r, "blur_view_psnr": m["blur_view"]["psnr"], "blur_view_ssim": m["blur_view"]["ssim"],
@@ -169,6 +182,7 @@ def study_one(args, scene: str, d: Path, seed: int, iterations: int, lrs: list[f
         if cfg.refine_poses:
             from ev3dgs.train.pose_refine import load_trajectory
 
+            row["pose_frame"] = cfg.pose_frame
             tj = load_trajectory(run_dir / "trajectory.npz", len(truth["true_mid"]))
             ex = schema.read(cfg.scene).train.exposure
             refined_mid = mid_poses(tj["poses"], tj["pose_t"], ex)
@@ -249,6 +263,9 @@ def main(argv=None) -> int:
                     help="translation error per view, fraction of the camera distance (default 0.02)")
     ap.add_argument("--pose-lr", type=float, nargs="+", default=None,
                     help="refinement learning rates to run (default 1e-3 3e-3; --quick 3e-3)")
+    ap.add_argument("--pose-frame", nargs="+", choices=("world", "camera"), default=[TrainConfig.pose_frame],
+                    help="axes of the refined runs' corrections (train --pose-frame), one refined run per frame "
+                         "and learning rate (default: TrainConfig's, %(default)s)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0],
                     help="perturbation and training seeds, one study each; with several, the JSON also holds "
                          "their mean and standard deviation (default 0)")
@@ -285,6 +302,7 @@ def main(argv=None) -> int:
         out = {k: per_seed[0][k] for k in ("scene", "size", "fov_deg", "views", "iterations", "rot_deg",
                                             "trans_frac")}
         out.update(seeds=args.seeds, summary=summarise(per_seed), per_seed=per_seed)
+    out["pose_frames"] = args.pose_frame
     out["seconds_total"] = time.perf_counter() - t_all
     out["command"] = "python tools/study_refine.py " + " ".join(argv if argv is not None else sys.argv[1:])
     save_json(args.json, out)

@@ -70,7 +70,7 @@ def _train(args) -> int:
         device=args.device, threads=args.threads, backend=args.backend,
         refine_poses=args.refine_poses, pose_lr=args.pose_lr, pose_lr_final=args.pose_lr_final,
         pose_start=args.pose_start, pose_warmup=args.pose_warmup, pose_max_rotation=args.pose_max_rotation,
-        pose_max_translation=args.pose_max_translation, pose_gauge=args.pose_gauge)
+        pose_max_translation=args.pose_max_translation, pose_gauge=args.pose_gauge, pose_frame=args.pose_frame)
     if args.resume:  # the run's saved settings, with only what the command line gave on top (checked there)
         given = {"scene"} | {{"no_event_loss": "event_loss"}.get(d, d) for d in getattr(args, "given_options", opts)}
         cfg = resume_config(args.out, opts, given)
@@ -217,6 +217,9 @@ def build_parser():
     t.add_argument("--pose-gauge", choices=("similarity", "none"), default="similarity",
                    help="similarity: remove the corrections' common rotation, translation and scale after every "
                         "update (the losses cannot see them); none: keep them (default %(default)s)")
+    t.add_argument("--pose-frame", choices=("world", "camera"), default="world",
+                   help="axes of the corrections: world, or camera (each view's own mid-exposure camera axes, "
+                        "z the optical axis: the roll gets its own Adam scale) (default %(default)s)")
     t.add_argument("--sh-degree", type=int, default=3, help="spherical-harmonics degree of the colours, 0-3 "
                                                            "(default %(default)s)")
     t.add_argument("--init-points", type=int, default=20000,

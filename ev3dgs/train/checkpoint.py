@@ -12,7 +12,7 @@ import torch
 
 from ..config import from_dict
 from ..errors import ConfigError, InputError
-from .config import TrainConfig, mismatch_error
+from .config import TrainConfig, mismatch_error, with_legacy_values
 
 REQUIRED_KEYS = ("step", "model", "optimizers", "strategy_state", "strategy_rng", "rng", "view_queue",
                  "thresholds", "threshold_opt")
@@ -70,7 +70,7 @@ def check_compatible(path: Path, payload: dict, cfg: TrainConfig, data) -> None:
     diffs = []
     if payload.get("config") is not None:
         try:
-            saved = from_dict(TrainConfig, payload["config"])
+            saved = from_dict(TrainConfig, with_legacy_values(payload["config"]))
         except (ConfigError, TypeError) as e:
             raise InputError(f"{path}: the checkpoint's settings are unreadable ({_one_line(e)})") from None
         diffs += saved.differences(cfg)

@@ -11,6 +11,13 @@ from ..errors import ConfigError
 # Options a resumed run may change: they do not change the trained model (extending the run, how often it is
 # saved, how many threads the rasterizer kernels use: results are bitwise the same for any thread count).
 RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
+# keys added after runs were saved without them, with the value those runs used (not today's default)
+LEGACY_VALUES = {"pose_frame": "world"}
+
+
+def with_legacy_values(data: dict) -> dict:
+    """A saved config dict with the keys it predates filled in as the run was made."""
+    return {**LEGACY_VALUES, **data} if isinstance(data, dict) else data
 
 
 @dataclass(frozen=True)
@@ -48,6 +55,7 @@ class TrainConfig:
     pose_max_rotation: float = 5.0    # clamp of each correction's rotation (degrees)
     pose_max_translation: float = 0.1  # clamp of each correction's translation (fraction of the scene scale)
     pose_gauge: str = "similarity"    # remove the 7-dof similarity component of the corrections, or "none"
+    pose_frame: str = "world"         # axes of the corrections: "world" or "camera" (the view's own, z = roll)
 
     def __post_init__(self):
         check(self.iterations >= 1, "--iterations must be >= 1")
@@ -76,6 +84,7 @@ class TrainConfig:
         check(0 < self.pose_max_rotation <= 90, "--pose-max-rotation must be in (0, 90] degrees")
         check(0 < self.pose_max_translation <= 10, "--pose-max-translation must be in (0, 10]")
         check(self.pose_gauge in ("similarity", "none"), "--pose-gauge must be similarity or none")
+        check(self.pose_frame in ("world", "camera"), "--pose-frame must be world or camera")
 
     @property
     def uses_events(self) -> bool:
@@ -105,7 +114,7 @@ class TrainConfig:
         if "scene" not in data:
             raise ConfigError(f"{path}: the run's config has no 'scene'")
         try:
-            return from_dict(TrainConfig, data)
+            return from_dict(TrainConfig, with_legacy_values(data))
         except ConfigError as e:
             raise ConfigError(f"{path}: {e}") from None
 

@@ -9,11 +9,25 @@ a rotation vector in radians. Sub-pose k of the exposure (time t_k, a_k = (t_k -
 a = 1/2 for a single mid-exposure pose) gets the linear interpolation xi_k = (1 - a_k) xi_start + a_k xi_end,
 applied to the stored camera-to-world pose (OpenCV axes) as a LEFT perturbation about the camera's own centre:
 
-    R'_k = Exp(omega_k) R_k          (the world-frame rotation, about the centre: the image rotates, the
-    c'_k = c_k + scene_scale * rho_k  camera stays put)      (the centre moves in world axes)
+    R'_k = Exp(Q omega_k) R_k          (a rotation about the centre: the image rotates, the camera stays put)
+    c'_k = c_k + scene_scale * Q rho_k  (the centre moves)
 
-i.e. a world-frame correction of (SO(3) x R^3), decoupled so that an orientation error (what a photometric
-loss sees most) is corrected without moving the centre. The corrected world->camera matrices feed the
+i.e. a correction of (SO(3) x R^3), decoupled so that an orientation error (what a photometric loss sees most)
+is corrected without moving the centre. ``frame`` picks the axes the 12 numbers are written in:
+
+* ``"world"``: Q = I, world axes.
+* ``"camera"``: Q = R_ref, the stored rotation of the view's reference sub-pose (the one nearest the middle
+  of the exposure: the mid-exposure pose for an odd number of sub-poses, e.g. the default 5), so omega and
+  rho are in that camera's own OpenCV axes (x right, y down, z the optical axis: omega_z is the roll). At the
+  reference sub-pose R'_k = R_k Exp(omega_k) (a right perturbation); at the others the axes stay those of
+  the reference camera (one fixed set of axes per view, whatever the motion inside the exposure).
+
+The two frames are one linear change of coordinates per view (an orthogonal one): the same set of corrected
+trajectories, the same gauge subspace and the same clamps; what differs is Adam, whose per-coordinate
+normalisation scales each coordinate on its own, so in "camera" the weakly observed roll (omega_z) gets steps
+of its own size instead of being mixed with pan/tilt.
+
+The corrected world->camera matrices feed the
 rasterizer, whose backward (every backend; ``cpu``: project_cpu.py's hand-written camera gradient) gives
 d(loss)/d(viewmat), and autograd carries it to the 12 numbers of the view. The interpolation is linear in the
 correction, which is exact for a constant offset of the whole exposure and first order otherwise.
@@ -27,7 +41,9 @@ test cameras are given in, and the pose error is ill-defined. After every update
 in that subspace is removed: to first order a similarity (w, tau, s) about the mean camera centre o changes
 (omega, rho) of every endpoint by (w, (w x (c - o) + tau + s (c - o)) / scene_scale); its least-squares
 fit to all corrections (the pseudo-inverse: rank-deficient sets, e.g. one view, still get a minimiser) is
-subtracted. ``gauge="none"`` keeps the corrections as they are (for a fixed, known scene).
+subtracted. In ``"camera"`` the basis rows of each endpoint are rotated into the view's axes (block
+diagonal Q^T, Q^T), an orthogonal map: the projection removes exactly the same subspace as in "world".
+``gauge="none"`` keeps the corrections as they are (for a fixed, known scene).
 
 Guard
 -----
@@ -52,6 +68,7 @@ import torch
 from ..errors import InputError
 
 GAUGES = ("similarity", "none")
+FRAMES = ("world", "camera")
 
 
 def _hat(w: torch.Tensor) -> torch.Tensor:
@@ -74,9 +91,10 @@ def so3_exp(w: torch.Tensor) -> torch.Tensor:
     return eye + a * K + b * (K @ K)
 
 
-def gauge_basis(centres: np.ndarray, scene_scale: float) -> np.ndarray:
+def gauge_basis(centres: np.ndarray, scene_scale: float, axes: np.ndarray | None = None) -> np.ndarray:
     """(M, 6, 7): the first-order change of the M endpoints' corrections (rho, omega) under the similarity
-    generators (w (3), tau (3), s (1)) about the centres' mean."""
+    generators (w (3), tau (3), s (1)) about the centres' mean; world axes, or, with ``axes`` (M, 3, 3) the
+    rotations Q of the endpoints' correction frames, in those axes (rows rotated by Q^T)."""
     d = (centres - centres.mean(0)) / scene_scale
     M = len(centres)
     A = np.zeros((M, 6, 7))
@@ -87,7 +105,17 @@ def gauge_basis(centres: np.ndarray, scene_scale: float) -> np.ndarray:
         A[:, 3 + i, i] = 1.0
         A[:, i, 3 + i] = 1.0  # tau, in units of the scene scale like rho
     A[:, :3, 6] = d
+    if axes is not None:
+        Qt = np.swapaxes(np.asarray(axes, np.float64), -1, -2)
+        A = np.concatenate([Qt @ A[:, :3], Qt @ A[:, 3:]], axis=1)
     return A
+
+
+def reference_rotations(c2w: np.ndarray, fractions: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): per view the stored rotation of the sub-pose nearest the middle of the exposure (fraction
+    0.5; the first of a tie), the axes of the "camera" frame."""
+    k = np.argmin(np.abs(np.asarray(fractions, np.float64) - 0.5), axis=1)
+    return np.asarray(c2w, np.float64)[np.arange(len(k)), k, :3, :3]
 
 
 class PoseRefiner:
@@ -97,12 +125,14 @@ class PoseRefiner:
     def __init__(self, c2w: np.ndarray, times: np.ndarray, fractions: np.ndarray, scene_scale: float, *,
                  lr: float = 1e-3, lr_final: float = 0.01, start: int = 0, warmup: int = 0,
                  iterations: int = 1, max_rotation_deg: float = 5.0, max_translation: float = 0.1,
-                 gauge: str = "similarity", device="cpu"):
+                 gauge: str = "similarity", frame: str = "world", device="cpu"):
         c2w = np.asarray(c2w, np.float64)
         if c2w.ndim != 4 or c2w.shape[2:] != (4, 4) or not np.isfinite(c2w).all():
             raise InputError(f"pose refinement needs finite (N, B, 4, 4) poses, got {c2w.shape}")
         if gauge not in GAUGES:
             raise InputError(f"gauge must be one of {GAUGES}, got {gauge!r}")
+        if frame not in FRAMES:
+            raise InputError(f"frame must be one of {FRAMES}, got {frame!r}")
         self.N, self.B = c2w.shape[:2]
         self.device = torch.device(device)
         self.c2w0 = c2w
@@ -112,16 +142,20 @@ class PoseRefiner:
         self.iterations = max(1, int(iterations))
         self.max_rot = math.radians(float(max_rotation_deg))
         self.max_trans = float(max_translation)
-        self.gauge = gauge
+        self.gauge, self.frame = gauge, frame
         t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=self.device)  # noqa: E731
         self.R0, self.c0 = t(c2w[..., :3, :3]), t(c2w[..., :3, 3])
         self.frac = t(np.asarray(fractions, np.float64))[..., None]  # (N, B, 1)
+        # the correction frame's axes per view (None: world axes, no product, bitwise the world-frame maths)
+        self.Q = reference_rotations(c2w, fractions) if frame == "camera" else None
+        self._Q = None if self.Q is None else t(self.Q)
         self.params = [torch.zeros(2, 6, dtype=torch.float64, device=self.device, requires_grad=True)
                        for _ in range(self.N)]
         self.opt = torch.optim.Adam(self.params, lr=self.lr)
         self.skipped = 0
         ends = np.concatenate([c2w[:, 0, :3, 3], c2w[:, -1, :3, 3]])  # (2N, 3): starts, then ends
-        A = gauge_basis(ends, self.scene_scale).reshape(2 * self.N * 6, 7)
+        axes = None if self.Q is None else np.concatenate([self.Q, self.Q])
+        A = gauge_basis(ends, self.scene_scale, axes).reshape(2 * self.N * 6, 7)
         # least-squares fit of the 7 generators: coef = pinv(A) x (rank-deficient A, e.g. one view: minimum
         # norm); applied with torch in the trainer's pinned-thread context (bitwise reproducible)
         self._gauge_A = A
@@ -136,7 +170,7 @@ class PoseRefiner:
         return cls(data.sub_c2w, times, frac, data.scene_scale, lr=cfg.pose_lr, lr_final=cfg.pose_lr_final,
                    start=cfg.pose_start, warmup=cfg.pose_warmup, iterations=cfg.iterations,
                    max_rotation_deg=cfg.pose_max_rotation, max_translation=cfg.pose_max_translation,
-                   gauge=cfg.pose_gauge, device=device)
+                   gauge=cfg.pose_gauge, frame=cfg.pose_frame, device=device)
 
     # ------------------------------------------------------------------ poses
     def corrections(self, v: int) -> torch.Tensor:
@@ -144,8 +178,16 @@ class PoseRefiner:
         p = self.params[v]
         return (1 - self.frac[v]) * p[0] + self.frac[v] * p[1]
 
-    def _rotation_centre(self, v: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def world_corrections(self, v: int) -> torch.Tensor:
+        """(B, 6) the interpolated corrections in world axes: (Q rho, Q omega) (differentiable)."""
         xi = self.corrections(v)
+        if self._Q is None:
+            return xi
+        Qt = self._Q[v].transpose(0, 1)
+        return torch.cat([xi[:, :3] @ Qt, xi[:, 3:] @ Qt], -1)
+
+    def _rotation_centre(self, v: int) -> tuple[torch.Tensor, torch.Tensor]:
+        xi = self.world_corrections(v)
         return so3_exp(xi[:, 3:]) @ self.R0[v], self.c0[v] + self.scene_scale * xi[:, :3]
 
     @staticmethod
@@ -169,10 +211,14 @@ class PoseRefiner:
         return np.stack([self.c2w(v).cpu().numpy() for v in range(self.N)])
 
     @torch.no_grad()
-    def table(self) -> np.ndarray:
-        """(N, 2, 6) corrections in world units: translation of the centre (3), rotation vector in rad (3)."""
+    def table(self, world: bool = False) -> np.ndarray:
+        """(N, 2, 6) corrections in world units: translation of the centre (3), rotation vector in rad (3);
+        in the frame's axes, or with ``world`` in world axes."""
         p = torch.stack(self.params).cpu().numpy().copy()
         p[..., :3] *= self.scene_scale
+        if world and self.Q is not None:
+            p = np.concatenate([np.einsum("nij,nkj->nki", self.Q, p[..., :3]),
+                                np.einsum("nij,nkj->nki", self.Q, p[..., 3:])], -1)
         return p
 
     # ------------------------------------------------------------------ optimisation
@@ -220,9 +266,12 @@ class PoseRefiner:
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
         return {"params": torch.stack([p.detach() for p in self.params]).clone(), "opt": self.opt.state_dict(),
-                "skipped": self.skipped}
+                "skipped": self.skipped, "frame": self.frame}
 
     def load_state_dict(self, state: dict) -> None:
+        saved = state.get("frame", "world")  # checkpoints from before the option held world-frame corrections
+        if saved != self.frame:
+            raise InputError(f"the checkpoint's pose corrections are in the {saved!r} frame, not {self.frame!r}")
         with torch.no_grad():
             for v, p in enumerate(self.params):
                 p.copy_(state["params"][v])
@@ -233,12 +282,16 @@ class PoseRefiner:
         """trajectory.npz: ``poses`` (N, B, 4, 4) refined camera-to-world (OpenCV axes) at ``pose_t`` (N, B) us
         (the b+1 sub-pose times of each exposure), ``initial_poses`` the stored ones at the same times,
         ``corrections`` (N, 2, 6) (centre translation in world units, rotation vector in rad) at the
-        exposure's start and end, and ``perturbation`` ("left, about the camera centre")."""
+        exposure's start and end in the axes of ``frame`` ("world" or "camera"), ``corrections_world`` the
+        same in world axes, ``frame_rotations`` (N, 3, 3) the axes Q of each view's corrections (identity for
+        "world"), and ``perturbation`` ("left, about the camera centre")."""
         from ..outputs import atomic_path
 
         with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
             np.savez(f, poses=self.all_c2w(), pose_t=self.times, initial_poses=self.c2w0,
-                     corrections=self.table(), perturbation=np.array("left, about the camera centre"))
+                     corrections=self.table(), corrections_world=self.table(world=True), frame=np.array(self.frame),
+                     frame_rotations=np.tile(np.eye(3), (self.N, 1, 1)) if self.Q is None else self.Q,
+                     perturbation=np.array("left, about the camera centre"))
 
 
 def load_trajectory(path: str | Path, n_views: int) -> dict:
@@ -281,5 +334,5 @@ def apply_similarity(c2w: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) ->
     return out
 
 
-__all__ = ["PoseRefiner", "so3_exp", "gauge_basis", "load_trajectory", "align_similarity", "apply_similarity",
-           "GAUGES"]
+__all__ = ["PoseRefiner", "so3_exp", "gauge_basis", "reference_rotations", "load_trajectory", "align_similarity",
+           "apply_similarity", "GAUGES", "FRAMES"]
