@@ -10,8 +10,9 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
 * forward: per tile, Gaussians outer and the tile's pixels inner; per pixel it keeps T and the index after
   the last Gaussian it composited. Per row of a Gaussian's box (at least SPAN_MIN_WIDTH wide) only the
   pixels inside its cut-off ellipse (sigma <= ln(255 o), solved per row, conservatively) are visited: about
-  half of the box. Tiles run in parallel (numba prange, handed out one at a time, most expensive first)
-  when threads > 1. When a gradient will be needed it records every fragment it composites (the pixel's
+  half of the box. Tiles run in parallel when threads > 1: sorted most expensive first and dealt out round
+  robin to the threads (a prange over threads; numba's own split of a prange into contiguous blocks gave one
+  thread all the expensive tiles of a cost-sorted list, so 2 threads ran no faster than one). When a gradient will be needed it records every fragment it composites (the pixel's
   index in its tile and exp(-sigma), in slots bounded by each entry's clipped box area; FRAGMENT_BUDGET caps
   the memory).
 * backward: per tile, Gaussians in reverse depth order; T is recovered by dividing by (1 - alpha) >= 0.01,
@@ -48,7 +49,7 @@ FRAGMENT_BUDGET = 512 * 2 ** 20  # bytes of recorded fragments per call; above i
 
 @njit(cache=True, nogil=True, parallel=True)
 def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
-             tiles_x, image, t_final, last, consts, frag_start, frag_pix, frag_e, frag_n):
+             tiles_x, image, t_final, last, consts, frag_start, frag_pix, frag_e, frag_n, n_threads):
     """All cameras at once: means2d (C,N,2), conics (C,N,3), colors (C,N,D), radii (C,N); global tile
     c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W).
 
@@ -62,95 +63,95 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
     n_tiles = tiles_x * (-(-height // TILE))
     record = frag_n.shape[0] == ids.shape[0]
-    for i in prange(work.shape[0]):
-        gt = work[i]
-        cam, tile = gt // n_tiles, gt % n_tiles
-        x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, image)
-        P = w * h
-        T = np.ones(P, image.dtype)
-        C = np.zeros((P, D), image.dtype)
-        stop = np.zeros(P, np.int64)
-        done = np.zeros(P, np.bool_)
-        col = np.empty(D, image.dtype)
-        n_done = 0
-        start, end = offsets[gt], offsets[gt + 1]
-        for k in range(start, end):
-            if n_done == P:
-                if record:  # the rest of the list composites nothing
-                    for kk in range(k, end):
-                        frag_n[kk] = 0
-                break
-            g = ids[k]
-            mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
-            a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
-            o = opacities[g]
-            smax = sigma_max[g]
-            for d in range(D):
-                col[d] = colors[cam, g, d]
-            # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
-            bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
-            ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
-            nf = 0
-            fs = frag_start[k] if record else 0
-            for py in range(by0, by1 + 1):
-                dy = ys[py - y0] - my
-                rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
-                for px in range(rx0, rx1 + 1):
-                    p = (py - y0) * w + (px - x0)
-                    if done[p]:
-                        continue
-                    dx = xs[px - x0] - mx
-                    sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < 0 or sigma > smax:  # beyond smax: alpha < 1/255, no exp needed
-                        continue
-                    e = np.exp(-sigma)
-                    alpha = min(amax, o * e)
-                    if alpha < amin:
-                        continue
-                    nT = T[p] * (one - alpha)
-                    if nT < tmin:
-                        done[p] = True
-                        n_done += 1
-                        continue
-                    wgt = alpha * T[p]
-                    for d in range(D):
-                        C[p, d] += col[d] * wgt
-                    T[p] = nT
-                    stop[p] = k + 1
-                    if record:
-                        frag_pix[fs + nf] = p
-                        frag_e[fs + nf] = e
-                        nf += 1
-            if record:
-                frag_n[k] = nf
-        for p in range(P):
-            px, py = x0 + p % w, y0 + p // w
-            for d in range(D):
-                image[cam, py, px, d] = C[p, d] + T[p] * background[d]
-            t_final[cam, py, px] = T[p]
-            last[cam, py, px] = stop[p]
+    # round robin over the threads: thread t takes work[t], work[t + T], ... (cost-ordered, so each
+    # thread gets a fair share); numba splits a prange into contiguous blocks, which on the cost-ordered
+    # list gave one thread every expensive tile (measured: no 2-thread gain on the demo scene)
+    n_work = work.shape[0]
+    n_threads = max(1, min(n_threads, n_work))
+    for t in prange(n_threads):
+        for i in range(t, n_work, n_threads):
+            gt = work[i]
+            cam, tile = gt // n_tiles, gt % n_tiles
+            x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, image)
+            P = w * h
+            T = np.ones(P, image.dtype)
+            C = np.zeros((P, D), image.dtype)
+            stop = np.zeros(P, np.int64)
+            done = np.zeros(P, np.bool_)
+            col = np.empty(D, image.dtype)
+            n_done = 0
+            start, end = offsets[gt], offsets[gt + 1]
+            for k in range(start, end):
+                if n_done == P:
+                    if record:  # the rest of the list composites nothing
+                        for kk in range(k, end):
+                            frag_n[kk] = 0
+                    break
+                g = ids[k]
+                mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
+                a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
+                o = opacities[g]
+                smax = sigma_max[g]
+                for d in range(D):
+                    col[d] = colors[cam, g, d]
+                # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
+                bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
+                ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
+                nf = 0
+                fs = frag_start[k] if record else 0
+                for py in range(by0, by1 + 1):
+                    dy = ys[py - y0] - my
+                    rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
+                    for px in range(rx0, rx1 + 1):
+                        p = (py - y0) * w + (px - x0)
+                        if done[p]:
+                            continue
+                        dx = xs[px - x0] - mx
+                        sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                        if sigma < 0 or sigma > smax:  # beyond smax: alpha < 1/255, no exp needed
+                            continue
+                        e = np.exp(-sigma)
+                        alpha = min(amax, o * e)
+                        if alpha < amin:
+                            continue
+                        nT = T[p] * (one - alpha)
+                        if nT < tmin:
+                            done[p] = True
+                            n_done += 1
+                            continue
+                        wgt = alpha * T[p]
+                        for d in range(D):
+                            C[p, d] += col[d] * wgt
+                        T[p] = nT
+                        stop[p] = k + 1
+                        if record:
+                            frag_pix[fs + nf] = p
+                            frag_e[fs + nf] = e
+                            nf += 1
+                if record:
+                    frag_n[k] = nf
+            for p in range(P):
+                px, py = x0 + p % w, y0 + p // w
+                for d in range(D):
+                    image[cam, py, px, d] = C[p, d] + T[p] * background[d]
+                t_final[cam, py, px] = T[p]
+                last[cam, py, px] = stop[p]
 
 
-def _parallel(kernel, *args, chunk: int = 0):
-    """Run a parallel kernel without letting numba change torch's intra-op thread count (see above).
-    ``chunk=1`` (the tile kernels): the prange is handed out one iteration at a time, so a free thread takes
-    the next tile of the work list and one expensive tile does not hold a whole static block back (the
-    results do not depend on which thread ran a tile). Not for kernels with whole-array operations outside
-    their prange (np.zeros, slices): numba turns those into parallel loops too, and chunk 1 hands those out
-    element by element (measured: _reduce 80x slower)."""
+def _parallel(kernel, *args):
+    """Run a parallel kernel without letting numba change torch's intra-op thread count (see above)."""
     threads = torch.get_num_threads()
-    old = numba.set_parallel_chunksize(chunk)
     try:
         return kernel(*args)
     finally:
-        numba.set_parallel_chunksize(old)
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
 
 
 def _work_order(offsets: np.ndarray) -> np.ndarray:
-    """Global tiles, most (tile, Gaussian) pairs first (ties by tile index): with dynamic hand-out the long
-    tiles start first and the short ones fill the gaps at the end (longest-processing-time-first)."""
+    """Global tiles, most (tile, Gaussian) pairs first (ties by tile index). The tile kernels deal them out
+    round robin (thread t takes work[t], work[t + T], ...), so each thread gets a near-equal share of the
+    expensive and the cheap tiles; which thread ran a tile does not change any result."""
     cost = np.diff(offsets)
     return np.argsort(-cost, kind="stable").astype(np.int64)
 
@@ -204,7 +205,7 @@ class _RasterizeCPU(torch.autograd.Function):
         frags = _fragment_buffers(m, r, offsets, ids, width, height, tiles_x, col.dtype,
                                   record=any(ctx.needs_input_grad[:4]))
         _parallel(_forward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, image, t_final, last,
-                  _consts(col.dtype), *frags, chunk=1)
+                  _consts(col.dtype), *frags, numba.get_num_threads())
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
         ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last, frags)
         ctx.size = (width, height, tiles_x)
@@ -223,10 +224,10 @@ class _RasterizeCPU(torch.autograd.Function):
         per_pair = np.zeros((len(ids), 6 + D), col.dtype)
         if frags[3].shape[0] == len(ids):  # the forward recorded its fragments: replay them
             _parallel(_backward_replay, m, q, col, o, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
-                      gi, ga, per_pair, _consts(col.dtype), *frags, chunk=1)
+                      gi, ga, per_pair, _consts(col.dtype), *frags, numba.get_num_threads())
         else:
             _parallel(_backward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
-                      gi, ga, per_pair, _consts(col.dtype), chunk=1)
+                      gi, ga, per_pair, _consts(col.dtype), numba.get_num_threads())
         g = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None
