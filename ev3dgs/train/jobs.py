@@ -1,7 +1,7 @@
 """Independent trainings side by side: each in its own spawned process with one thread.
 
 CPU training gives bitwise the same result for any thread count (trainer.reproducible), and on a small scene
-one training scales poorly past one thread (the demo scene: 1.25x from 1 to 2 threads), so N trainings at once
+one training scales sublinearly past one thread (the demo scene: ~1.5x from 1 to 2 threads), so N trainings at once
 on N cores finish sooner than N one after the other with N threads each, with the same numbers.
 """
 from __future__ import annotations
