@@ -148,8 +148,8 @@ def test_benchmark_script_writes_json_and_plot(tmp_path):
                        capture_output=True, text=True, cwd=root)
     assert r.returncode == 0, r.stderr
     rows = json.loads((tmp_path / "b.json").read_text())["rows"]
-    assert {(r["motion_px_per_frame"], r["mode"]) for r in rows} == {(1, "clean"), (1, "all-noise"),
-                                                                      (4, "clean"), (4, "all-noise")}
+    modes = ("clean", "v2e-clean", "v2e-noisy", "all-noise")  # bench_sim.MODES
+    assert {(r["motion_px_per_frame"], r["mode"]) for r in rows} == {(m, k) for m in (1, 4) for k in modes}
     clean = {r["motion_px_per_frame"]: r["events"] for r in rows if r["mode"] == "clean"}
     assert clean[4] > 2 * clean[1] > 0  # faster motion, more events
     assert (tmp_path / "b.png").stat().st_size > 1000
