@@ -12,9 +12,9 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
   pixels inside its cut-off ellipse (sigma <= ln(255 o), solved per row, conservatively) are visited: about
   half of the box. Tiles run in parallel when threads > 1: sorted most expensive first and dealt out round
   robin to the threads (a prange over threads; numba's own split of a prange into contiguous blocks gave one
-  thread all the expensive tiles of a cost-sorted list, so 2 threads ran no faster than one). When a gradient will be needed it records every fragment it composites (the pixel's
-  index in its tile and exp(-sigma), in slots bounded by each entry's clipped box area; FRAGMENT_BUDGET caps
-  the memory).
+  thread all the expensive tiles of a cost-sorted list, so 2 threads ran no faster than one). When a
+  gradient will be needed it records every fragment it composites (the pixel's index in its tile and
+  exp(-sigma), in slots bounded by each entry's clipped box area; FRAGMENT_BUDGET caps the memory).
 * backward: per tile, Gaussians in reverse depth order; T is recovered by dividing by (1 - alpha) >= 0.01,
   the colour behind each Gaussian is accumulated, and gradients go to a per-(tile, Gaussian) buffer that a
   serial pass sums per Gaussian. No atomics, and the result does not depend on the thread count. It
