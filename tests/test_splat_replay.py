@@ -1,5 +1,5 @@
-"""The cpu backend's backward replays the fragments its forward recorded (cpu._backward_replay); with no
-room for them (FRAGMENT_BUDGET) it recomputes them (cpu._backward). The two are the same updates in the same
+"""The cpu backend's backward replays the fragments its forward recorded (cpu._backward); with no
+room for them (FRAGMENT_BUDGET) it recomputes them (the same kernel). The two are the same updates in the same
 order, so their gradients must be bitwise equal: a fragment the forward records is exactly a pixel the
 recomputing backward processes. Checked on random scenes, the hard cases (clamped alpha, opacities near 0 and
 1, degenerate covariances), opaque layers that stop whole tiles early, float32 and float64, one and several

@@ -40,9 +40,9 @@ from numba import njit, prange
 
 # the kernels live in cpu_tiles.py (constants, boxes, spans, depth sort, binning) and cpu_backward.py; the
 # names tests and tools reach through this module are imported here
-from .cpu_backward import _backward, _backward_replay, _reduce
+from .cpu_backward import _backward, _reduce
 from .cpu_tiles import ALPHA_MAX, ALPHA_MIN, SPAN_MIN_WIDTH, T_MIN, TILE  # noqa: F401
-from .cpu_tiles import _bin, _box, _box_areas, _row_span, _span_params, _stable_argsort, _tile  # noqa: F401
+from .cpu_tiles import _bin, _box, _box_areas, _entry, _row_span, _span_params, _stable_argsort, _tile  # noqa: F401
 
 FRAGMENT_BUDGET = 512 * 2 ** 20  # bytes of recorded fragments per call; above it the backward recomputes
 
@@ -63,13 +63,8 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
     n_tiles = tiles_x * (-(-height // TILE))
     record = frag_n.shape[0] == ids.shape[0]
-    # round robin over the threads: thread t takes work[t], work[t + T], ... (cost-ordered, so each
-    # thread gets a fair share); numba splits a prange into contiguous blocks, which on the cost-ordered
-    # list gave one thread every expensive tile (measured: no 2-thread gain on the demo scene)
-    n_work = work.shape[0]
-    n_threads = max(1, min(n_threads, n_work))
-    for t in prange(n_threads):
-        for i in range(t, n_work, n_threads):
+    for t in prange(n_threads):  # tiles dealt round robin to the threads (see cpu._work_order)
+        for i in range(t, work.shape[0], n_threads):
             gt = work[i]
             cam, tile = gt // n_tiles, gt % n_tiles
             x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, image)
@@ -82,18 +77,11 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
             n_done = 0
             start, end = offsets[gt], offsets[gt + 1]
             for k in range(start, end):
-                if n_done == P:
-                    if record:  # the rest of the list composites nothing
-                        for kk in range(k, end):
-                            frag_n[kk] = 0
+                if n_done == P:  # every pixel done: no later entry is composited (nor replayed: kmax <= k)
                     break
                 g = ids[k]
-                mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
-                a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
-                o = opacities[g]
+                mx, my, a, b, c, o = _entry(cam, g, means2d, conics, opacities, colors, col)
                 smax = sigma_max[g]
-                for d in range(D):
-                    col[d] = colors[cam, g, d]
                 # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
                 bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
                 ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
@@ -156,6 +144,12 @@ def _work_order(offsets: np.ndarray) -> np.ndarray:
     return np.argsort(-cost, kind="stable").astype(np.int64)
 
 
+def _threads(work: np.ndarray) -> int:
+    """How many threads the tile kernels deal the work list to: numba's thread count (thread-local, as
+    rasterize_cpu set it), at most one per tile, at least one."""
+    return max(1, min(numba.get_num_threads(), len(work)))
+
+
 def _fragment_buffers(m, r, offsets, ids, width, height, tiles_x, dtype, record: bool) -> tuple:
     """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
     pixel of every tile-list entry's clipped radius box (an upper bound). Without ``record`` (no input needs a
@@ -205,7 +199,7 @@ class _RasterizeCPU(torch.autograd.Function):
         frags = _fragment_buffers(m, r, offsets, ids, width, height, tiles_x, col.dtype,
                                   record=any(ctx.needs_input_grad[:4]))
         _parallel(_forward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, image, t_final, last,
-                  _consts(col.dtype), *frags, numba.get_num_threads())
+                  _consts(col.dtype), *frags, _threads(work))
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
         ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last, frags)
         ctx.size = (width, height, tiles_x)
@@ -222,12 +216,9 @@ class _RasterizeCPU(torch.autograd.Function):
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
         per_pair = np.zeros((len(ids), 6 + D), col.dtype)
-        if frags[3].shape[0] == len(ids):  # the forward recorded its fragments: replay them
-            _parallel(_backward_replay, m, q, col, o, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
-                      gi, ga, per_pair, _consts(col.dtype), *frags, numba.get_num_threads())
-        else:
-            _parallel(_backward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
-                      gi, ga, per_pair, _consts(col.dtype), numba.get_num_threads())
+        # replays the fragments when the forward recorded them (frags not empty), else recomputes them
+        _parallel(_backward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
+                  gi, ga, per_pair, _consts(col.dtype), *frags, _threads(work))
         g = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None

@@ -1,13 +1,13 @@
-"""The `cpu` backend's backward kernels (see cpu.py): the recomputing one, the one that replays the forward's
-recorded fragments, and the per-camera, per-Gaussian sum of their per-(tile, Gaussian) gradients. Both
-backward kernels run the same per-tile set-up (_tile_state) and the same per-fragment update (_fragment_grad),
-so they give bitwise the same gradients whenever they visit the same fragments in the same order."""
+"""The `cpu` backend's backward kernel (see cpu.py), which replays the forward's recorded fragments or
+recomputes them, and the per-camera, per-Gaussian sum of its per-(tile, Gaussian) gradients. Both ways run the
+same per-tile set-up (_tile_state) and the same per-fragment update (_fragment_grad), so they give bitwise
+the same gradients."""
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
 
-from .cpu_tiles import TILE, _box, _row_span, _span_params, _tile
+from .cpu_tiles import TILE, _box, _entry, _row_span, _span_params, _tile
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -81,21 +81,20 @@ def _store(per_pair, k, gcol, acc):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
-              tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts, n_threads):
+              tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts, frag_start, frag_pix, frag_e, frag_n,
+              n_threads):
     """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...].
-    Recomputes each fragment: the pixels of the entry's spans that it composited (k < stop[p], sigma in
-    range, alpha >= 1/255)."""
+    When the forward recorded its fragments (frag_n has one entry per tile-list entry) they are replayed:
+    no row spans, exp or tests. Otherwise each is recomputed: the pixels of the entry's spans that it
+    composited (k < stop[p], sigma in range, alpha >= 1/255), which is exactly the recorded set. Either way the
+    same updates (_fragment_grad) in the same order: bitwise the same per_pair."""
     D = colors.shape[2]
     half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
     zero = half - half
     n_tiles = tiles_x * (-(-height // TILE))
-    # round robin over the threads: thread t takes work[t], work[t + T], ... (cost-ordered, so each
-    # thread gets a fair share); numba splits a prange into contiguous blocks, which on the cost-ordered
-    # list gave one thread every expensive tile (measured: no 2-thread gain on the demo scene)
-    n_work = work.shape[0]
-    n_threads = max(1, min(n_threads, n_work))
-    for t in prange(n_threads):
-        for i in range(t, n_work, n_threads):
+    replay = frag_n.shape[0] == ids.shape[0]
+    for t in prange(n_threads):  # tiles dealt round robin to the threads (see cpu._work_order)
+        for i in range(t, work.shape[0], n_threads):
             gt = work[i]
             cam, tile = gt // n_tiles, gt % n_tiles
             x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
@@ -104,14 +103,21 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
             gcol = np.empty(D, t_final.dtype)
             col = np.empty(D, t_final.dtype)
             for k in range(kmax - 1, offsets[gt] - 1, -1):
+                if replay and frag_n[k] == 0:  # per_pair[k] stays 0, as recomputing leaves it
+                    continue
                 g = ids[k]
-                mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
-                a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
-                o = opacities[g]
+                mx, my, a, b, c, o = _entry(cam, g, means2d, conics, opacities, colors, col)
                 acc = (zero, zero, zero, zero, zero, zero)
                 for d in range(D):
                     gcol[d] = zero
-                    col[d] = colors[cam, g, d]
+                if replay:
+                    fs = frag_start[k]
+                    for j in range(fs, fs + frag_n[k]):
+                        p = np.int64(frag_pix[j])
+                        acc = _fragment_grad(p, xs[p % w] - mx, ys[p // w] - my, frag_e[j], o, a, b, c, col, gcol, T,
+                                             S, G, GA, TF, half, one, amax, acc)
+                    _store(per_pair, k, gcol, acc)
+                    continue
                 smax = sigma_max[g]
                 bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
                 ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
@@ -130,51 +136,6 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
                         if min(amax, o * e) < amin:
                             continue
                         acc = _fragment_grad(p, dx, dy, e, o, a, b, c, col, gcol, T, S, G, GA, TF, half, one, amax, acc)
-                _store(per_pair, k, gcol, acc)
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _backward_replay(means2d, conics, colors, opacities, offsets, ids, work, background, width, height, tiles_x,
-                     t_final, last, grad_image, grad_alpha, per_pair, consts, frag_start, frag_pix, frag_e, frag_n,
-                     n_threads):
-    """_backward over the fragments the forward recorded: the same updates in the same order (so bitwise the
-    same per_pair), without the row spans, the exp and the tests (a recorded fragment is exactly a pixel that
-    _backward would process: k < stop[p], sigma in range, alpha >= 1/255)."""
-    D = colors.shape[2]
-    half, one, amax = consts[0], consts[1], consts[2]
-    zero = half - half
-    n_tiles = tiles_x * (-(-height // TILE))
-    # round robin over the threads: thread t takes work[t], work[t + T], ... (cost-ordered, so each
-    # thread gets a fair share); numba splits a prange into contiguous blocks, which on the cost-ordered
-    # list gave one thread every expensive tile (measured: no 2-thread gain on the demo scene)
-    n_work = work.shape[0]
-    n_threads = max(1, min(n_threads, n_work))
-    for t in prange(n_threads):
-        for i in range(t, n_work, n_threads):
-            gt = work[i]
-            cam, tile = gt // n_tiles, gt % n_tiles
-            x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
-            T, S, G, GA, TF, stop, kmax = _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha,
-                                                      background, offsets[gt])
-            gcol = np.empty(D, t_final.dtype)
-            col = np.empty(D, t_final.dtype)
-            for k in range(kmax - 1, offsets[gt] - 1, -1):
-                nf = frag_n[k]
-                if nf == 0:  # per_pair[k] stays 0, as _backward leaves it
-                    continue
-                g = ids[k]
-                mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
-                a, b, c = conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2]
-                o = opacities[g]
-                acc = (zero, zero, zero, zero, zero, zero)
-                for d in range(D):
-                    gcol[d] = zero
-                    col[d] = colors[cam, g, d]
-                fs = frag_start[k]
-                for j in range(fs, fs + nf):
-                    p = np.int64(frag_pix[j])
-                    acc = _fragment_grad(p, xs[p % w] - mx, ys[p // w] - my, frag_e[j], o, a, b, c, col, gcol, T, S, G,
-                                         GA, TF, half, one, amax, acc)
                 _store(per_pair, k, gcol, acc)
 
 

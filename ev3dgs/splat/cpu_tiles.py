@@ -79,6 +79,15 @@ def _tile(tile, tiles_x, width, height, like):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _entry(cam, g, means2d, conics, opacities, colors, col):
+    """Gaussian g as camera cam sees it, for a tile kernel: (mx, my, a, b, c, opacity); its colour into col."""
+    for d in range(col.shape[0]):
+        col[d] = colors[cam, g, d]
+    return (means2d[cam, g, 0], means2d[cam, g, 1], conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2],
+            opacities[g])
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _tile_rect(mx, my, r, width, height):
     """Tile rectangle (tx0, tx1, ty0, ty1) a Gaussian's radius box touches; tx0 > tx1 when off-image."""
     x0, x1, y0, y1 = _box(mx, my, r, 0, 0, width - 1, height - 1)
