@@ -7,6 +7,11 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
   counted and placed per 16x16 tile (a counting sort), so every tile's list is already in depth order.
   Nothing is dropped: a Gaussian goes to every tile its (opacity-aware, exact) radius touches, so the
   per-tile lists hold every Gaussian that can reach a pixel.
+* packing (cpu_tiles._pack): each tile-list entry's Gaussian data (mean, conic, opacity, cut-off, colour)
+  copied in list order, so the tile kernels stream it instead of gathering it from per-Gaussian arrays, and
+  its pixel box: the radius box clipped to the tile and to the axis-aligned bounds of the cut-off ellipse
+  (the radius box is a square around the longest axis; on a trained demo step 57 % of its pixels lay
+  outside the ellipse).
 * forward: per tile, Gaussians outer and the tile's pixels inner; per pixel it keeps T and the index after
   the last Gaussian it composited. Per row of a Gaussian's box (at least SPAN_MIN_WIDTH wide) only the
   pixels inside its cut-off ellipse (sigma <= ln(255 o), solved per row, conservatively) are visited: about
@@ -42,27 +47,27 @@ from numba import njit, prange
 # names tests and tools reach through this module are imported here
 from .cpu_backward import _backward, _reduce
 from .cpu_tiles import ALPHA_MAX, ALPHA_MIN, SPAN_MIN_WIDTH, T_MIN, TILE  # noqa: F401
-from .cpu_tiles import _bin, _box, _box_areas, _entry, _row_span, _span_params, _stable_argsort, _tile  # noqa: F401
+from .cpu_tiles import _bin, _box, _entry, _pack, _row_span, _span_params, _stable_argsort, _tile  # noqa: F401
 
 FRAGMENT_BUDGET = 512 * 2 ** 20  # bytes of recorded fragments per call; above it the backward recomputes
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
-             tiles_x, image, t_final, last, consts, frag_start, frag_pix, frag_e, frag_n, n_threads):
-    """All cameras at once: means2d (C,N,2), conics (C,N,3), colors (C,N,D), radii (C,N); global tile
+def _forward(params, boxes, offsets, work, background, width, height, tiles_x, image, t_final, last, consts,
+             frag_start, frag_pix, frag_e, frag_n, n_threads):
+    """All cameras at once: params and boxes per tile-list entry (cpu_tiles._pack); global tile
     c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W).
 
     Fragments (when frag_n has one entry per tile-list entry; else not recorded): tile-list entry k's
     composited pixels, in the order they were composited, go to slots frag_start[k] ... (frag_n[k] of them,
     at most the entry's box area): the pixel's index in its tile (frag_pix) and exp(-sigma) (frag_e), exactly
     as computed here, so the backward replays them without recomputing or re-testing anything."""
-    D = colors.shape[2]
+    D = image.shape[3]
     # consts = (0.5, 1, ALPHA_MAX, ALPHA_MIN, T_MIN) in the input dtype: with float32 inputs the maths stays
     # float32 (numba would promote to float64 on any Python float literal)
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
     n_tiles = tiles_x * (-(-height // TILE))
-    record = frag_n.shape[0] == ids.shape[0]
+    record = frag_n.shape[0] == params.shape[0]
     for t in prange(n_threads):  # tiles dealt round robin to the threads (see cpu._work_order)
         for i in range(t, work.shape[0], n_threads):
             gt = work[i]
@@ -79,11 +84,9 @@ def _forward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids,
             for k in range(start, end):
                 if n_done == P:  # every pixel done: no later entry is composited (nor replayed: kmax <= k)
                     break
-                g = ids[k]
-                mx, my, a, b, c, o = _entry(cam, g, means2d, conics, opacities, colors, col)
-                smax = sigma_max[g]
+                mx, my, a, b, c, o, smax = _entry(params, k, col)
                 # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
-                bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
+                bx0, bx1, by0, by1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
                 ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
                 nf = 0
                 fs = frag_start[k] if record else 0
@@ -150,20 +153,21 @@ def _threads(work: np.ndarray) -> int:
     return max(1, min(numba.get_num_threads(), len(work)))
 
 
-def _fragment_buffers(m, r, offsets, ids, width, height, tiles_x, dtype, record: bool) -> tuple:
+def _fragment_buffers(boxes, dtype, record: bool) -> tuple:
     """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
     pixel of every tile-list entry's clipped radius box (an upper bound). Without ``record`` (no input needs a
     gradient) or over FRAGMENT_BUDGET bytes, nothing is recorded (frag_n empty) and a backward recomputes."""
     none = (np.zeros(1, np.int64), np.zeros(0, np.uint8), np.zeros(0, dtype), np.zeros(0, np.int32))
-    if not record or len(ids) == 0:
+    if not record or len(boxes) == 0:
         return none
-    areas = _parallel(_box_areas, m, r, offsets, ids, width, height, tiles_x)
-    start = np.zeros(len(ids) + 1, np.int64)
+    b = boxes.astype(np.int64)
+    areas = (b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)  # empty boxes are stored as (0, -1, 0, -1): 0
+    start = np.zeros(len(boxes) + 1, np.int64)
     np.cumsum(areas, out=start[1:])
     total = int(start[-1])
     if total * (1 + np.dtype(dtype).itemsize) > FRAGMENT_BUDGET:
         return none
-    return start, np.empty(total, np.uint8), np.empty(total, dtype), np.empty(len(ids), np.int32)
+    return start, np.empty(total, np.uint8), np.empty(total, dtype), np.empty(len(boxes), np.int32)
 
 
 def _consts(dtype) -> np.ndarray:
@@ -196,29 +200,29 @@ class _RasterizeCPU(torch.autograd.Function):
         image = np.empty((C, height, width, col.shape[2]), col.dtype)
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
-        frags = _fragment_buffers(m, r, offsets, ids, width, height, tiles_x, col.dtype,
-                                  record=any(ctx.needs_input_grad[:4]))
-        _parallel(_forward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, image, t_final, last,
+        params, boxes = _parallel(_pack, m, q, col, o, r, smax, offsets, ids, width, height, tiles_x)
+        frags = _fragment_buffers(boxes, col.dtype, record=any(ctx.needs_input_grad[:4]))
+        _parallel(_forward, params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
                   _consts(col.dtype), *frags, _threads(work))
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
-        ctx.arrays = (m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last, frags)
-        ctx.size = (width, height, tiles_x)
+        ctx.arrays = (params, boxes, bg, offsets, ids, work, t_final, last, frags)
+        ctx.size = (width, height, tiles_x, C, m.shape[1], col.shape[2])
         alpha = torch.from_numpy(1.0 - t_final)[..., None]
         return torch.from_numpy(image), alpha
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha):
-        m, q, col, o, r, smax, bg, offsets, ids, work, t_final, last, frags = ctx.arrays
-        width, height, tiles_x = ctx.size
-        C, N, D = col.shape
-        gi = (np.zeros((C, height, width, D), col.dtype) if grad_image is None
-              else _np(grad_image).astype(col.dtype, copy=False))
+        params, boxes, bg, offsets, ids, work, t_final, last, frags = ctx.arrays
+        width, height, tiles_x, C, N, D = ctx.size
+        dtype = t_final.dtype
+        gi = (np.zeros((C, height, width, D), dtype) if grad_image is None
+              else _np(grad_image).astype(dtype, copy=False))
         ga = (np.zeros_like(t_final) if grad_alpha is None
-              else _np(grad_alpha).astype(col.dtype, copy=False)[..., 0])
-        per_pair = np.zeros((len(ids), 6 + D), col.dtype)
+              else _np(grad_alpha).astype(dtype, copy=False)[..., 0])
+        per_pair = np.zeros((len(ids), 6 + D), dtype)
         # replays the fragments when the forward recorded them (frags not empty), else recomputes them
-        _parallel(_backward, m, q, col, o, r, smax, offsets, ids, work, bg, width, height, tiles_x, t_final, last,
-                  gi, ga, per_pair, _consts(col.dtype), *frags, _threads(work))
+        _parallel(_backward, params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last, gi, ga,
+                  per_pair, _consts(dtype), *frags, _threads(work))
         g = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .cpu_tiles import TILE, _box, _entry, _row_span, _span_params, _tile
+from .cpu_tiles import TILE, _entry, _row_span, _span_params, _tile
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -80,19 +80,19 @@ def _store(per_pair, k, gcol, acc):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, work, background, width, height,
-              tiles_x, t_final, last, grad_image, grad_alpha, per_pair, consts, frag_start, frag_pix, frag_e, frag_n,
-              n_threads):
-    """per_pair[k] gets Gaussian ids[k]'s gradient from tile-list entry k: [dmx, dmy, da, db, dc, do, dcol...].
+def _backward(params, boxes, offsets, work, background, width, height, tiles_x, t_final, last, grad_image,
+              grad_alpha, per_pair, consts, frag_start, frag_pix, frag_e, frag_n, n_threads):
+    """per_pair[k] gets tile-list entry k's gradient (its Gaussian as its camera sees it; params and boxes per
+    entry from cpu_tiles._pack): [dmx, dmy, da, db, dc, do, dcol...].
     When the forward recorded its fragments (frag_n has one entry per tile-list entry) they are replayed:
     no row spans, exp or tests. Otherwise each is recomputed: the pixels of the entry's spans that it
     composited (k < stop[p], sigma in range, alpha >= 1/255), which is exactly the recorded set. Either way the
     same updates (_fragment_grad) in the same order: bitwise the same per_pair."""
-    D = colors.shape[2]
+    D = per_pair.shape[1] - 6
     half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
     zero = half - half
     n_tiles = tiles_x * (-(-height // TILE))
-    replay = frag_n.shape[0] == ids.shape[0]
+    replay = frag_n.shape[0] == params.shape[0]
     for t in prange(n_threads):  # tiles dealt round robin to the threads (see cpu._work_order)
         for i in range(t, work.shape[0], n_threads):
             gt = work[i]
@@ -105,8 +105,7 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
             for k in range(kmax - 1, offsets[gt] - 1, -1):
                 if replay and frag_n[k] == 0:  # per_pair[k] stays 0, as recomputing leaves it
                     continue
-                g = ids[k]
-                mx, my, a, b, c, o = _entry(cam, g, means2d, conics, opacities, colors, col)
+                mx, my, a, b, c, o, smax = _entry(params, k, col)
                 acc = (zero, zero, zero, zero, zero, zero)
                 for d in range(D):
                     gcol[d] = zero
@@ -118,8 +117,7 @@ def _backward(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids
                                              S, G, GA, TF, half, one, amax, acc)
                     _store(per_pair, k, gcol, acc)
                     continue
-                smax = sigma_max[g]
-                bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
+                bx0, bx1, by0, by1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
                 ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
                 for py in range(by0, by1 + 1):
                     dy = ys[py - y0] - my

@@ -79,12 +79,12 @@ def _tile(tile, tiles_x, width, height, like):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _entry(cam, g, means2d, conics, opacities, colors, col):
-    """Gaussian g as camera cam sees it, for a tile kernel: (mx, my, a, b, c, opacity); its colour into col."""
+def _entry(params, k, col):
+    """Tile-list entry k's packed data (see _pack) for a tile kernel: (mx, my, a, b, c, opacity, sigma_max);
+    its colour into col."""
     for d in range(col.shape[0]):
-        col[d] = colors[cam, g, d]
-    return (means2d[cam, g, 0], means2d[cam, g, 1], conics[cam, g, 0], conics[cam, g, 1], conics[cam, g, 2],
-            opacities[g])
+        col[d] = params[k, 7 + d]
+    return params[k, 0], params[k, 1], params[k, 2], params[k, 3], params[k, 4], params[k, 5], params[k, 6]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -188,21 +188,68 @@ def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
     return offsets, ids
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ellipse_box(mx, my, a, b, c, smax, bx0, bx1, by0, by1):
+    """The box [bx0, bx1] x [by0, by1] shrunk to the axis-aligned bounds of the Gaussian's cut-off ellipse
+    sigma <= s (s: smax inflated against the kernel's rounding, as in _span_params): for sigma = 0.5 d^T Q d,
+    Q = [[a, b], [b, c]], the half-widths are sqrt(2 s c / det) in x and sqrt(2 s a / det) in y, widened by
+    1e-6 px against this float64 solve. The radius box is a square around the ellipse's longest axis, so for
+    an elongated Gaussian this one is much smaller (on a trained demo step 57 % of the pixels the square boxes
+    visited were outside the ellipse). Not positive definite, or smax not finite: the box as given; s <= 0:
+    empty (a kernel only composites 0 <= sigma <= smax)."""
+    ok, det, s = _span_params(a, b, c, smax)
+    if not ok or not np.isfinite(s):
+        return bx0, bx1, by0, by1
+    if s <= 0.0:
+        return 0, -1, 0, -1
+    hx = np.sqrt(2.0 * s * np.float64(c) / det) + 1e-6
+    hy = np.sqrt(2.0 * s * np.float64(a) / det) + 1e-6
+    bx0 = max(bx0, int(np.ceil(np.float64(mx) - hx)))
+    bx1 = min(bx1, int(np.floor(np.float64(mx) + hx)))
+    by0 = max(by0, int(np.ceil(np.float64(my) - hy)))
+    by1 = min(by1, int(np.floor(np.float64(my) + hy)))
+    if bx0 > bx1 or by0 > by1:
+        return 0, -1, 0, -1
+    return bx0, bx1, by0, by1
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def _box_areas(means2d, radii, offsets, ids, width, height, tiles_x):
-    """Per tile-list entry, the pixel count of its Gaussian's radius box clipped to the tile: an upper bound
-    of the fragments the forward can record for it."""
+def _pack(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, width, height, tiles_x):
+    """The tile kernels' inputs per tile-list entry, in list order: entry k (Gaussian g = ids[k] as its
+    camera sees it, in its tile) gets params[k] = (mx, my, a, b, c, opacity, sigma_max, colour...) in the
+    colours' dtype and boxes[k] = (bx0, bx1, by0, by1), g's radius box clipped to the tile and to its cut-off
+    ellipse's bounds (_ellipse_box; (0, -1, 0, -1) when empty): every pixel k can composite lies inside, so
+    its area bounds the fragments k can have. The forward and backward kernels then read their
+    entries as one forward stream instead of gathering each from five per-Gaussian arrays (measured on a
+    trained demo step, 118k entries: forward kernel 17.0 -> 14.7 ms including this pass)."""
     n_tiles = tiles_x * (-(-height // TILE))
-    out = np.empty(ids.shape[0], np.int64)
+    D = colors.shape[2]
+    params = np.empty((ids.shape[0], 7 + D), colors.dtype)
+    boxes = np.empty((ids.shape[0], 4), np.int32)
     for gt in prange(offsets.shape[0] - 1):
         cam, tile = gt // n_tiles, gt % n_tiles
         x0, y0 = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
         w, h = min(TILE, width - x0), min(TILE, height - y0)
         for k in range(offsets[gt], offsets[gt + 1]):
             g = ids[k]
-            bx0, bx1, by0, by1 = _box(means2d[cam, g, 0], means2d[cam, g, 1], radii[cam, g], x0, y0,
-                                      x0 + w - 1, y0 + h - 1)
-            out[k] = max(0, bx1 - bx0 + 1) * max(0, by1 - by0 + 1)
-    return out
-
-
+            mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
+            params[k, 0] = mx
+            params[k, 1] = my
+            params[k, 2] = conics[cam, g, 0]
+            params[k, 3] = conics[cam, g, 1]
+            params[k, 4] = conics[cam, g, 2]
+            params[k, 5] = opacities[g]
+            params[k, 6] = sigma_max[g]
+            for d in range(D):
+                params[k, 7 + d] = colors[cam, g, d]
+            bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
+            if bx0 > bx1 or by0 > by1:
+                bx0, bx1, by0, by1 = 0, -1, 0, -1
+            else:
+                bx0, bx1, by0, by1 = _ellipse_box(mx, my, params[k, 2], params[k, 3], params[k, 4], params[k, 6],
+                                                  bx0, bx1, by0, by1)
+            boxes[k, 0] = bx0
+            boxes[k, 1] = bx1
+            boxes[k, 2] = by0
+            boxes[k, 3] = by1
+    return params, boxes
