@@ -47,7 +47,7 @@ from numba import njit, prange
 # names tests and tools reach through this module are imported here
 from .cpu_backward import _backward, _reduce
 from .cpu_tiles import ALPHA_MAX, ALPHA_MIN, SPAN_MIN_WIDTH, T_MIN, TILE  # noqa: F401
-from .cpu_tiles import _bin, _box, _entry, _pack, _row_span, _span_params, _stable_argsort, _tile  # noqa: F401
+from .cpu_tiles import _bin, _box, _ellipse_box, _entry, _pack, _pixel_boxes, _row_span, _span_params, _stable_argsort, _tile  # noqa: F401
 
 FRAGMENT_BUDGET = 512 * 2 ** 20  # bytes of recorded fragments per call; above it the backward recomputes
 
@@ -191,16 +191,17 @@ class _RasterizeCPU(torch.autograd.Function):
         bg = _np(background.to(dtype))
         r = _np(radii).astype(np.int64)
         tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-        offsets, ids = _parallel(_bin, m, r, _np(depths), width, height, tiles_x, tiles_y)
-        work = _work_order(offsets)
         # alpha >= 1/255 needs sigma <= ln(255 o): beyond that (plus a margin, so the exact alpha test still
-        # decides at the boundary) no exp is computed
+        # decides at the boundary) no exp is computed, and no tile or pixel outside that ellipse is visited
         with np.errstate(divide="ignore"):
             smax = (np.log(np.maximum(o.astype(np.float64), 0.0) * 255.0) + 1e-6).astype(col.dtype)
+        gboxes = _parallel(_pixel_boxes, m, r, q, smax, width, height)
+        offsets, ids = _parallel(_bin, gboxes, r, _np(depths), tiles_x, tiles_y)
+        work = _work_order(offsets)
         image = np.empty((C, height, width, col.shape[2]), col.dtype)
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
-        params, boxes = _parallel(_pack, m, q, col, o, r, smax, offsets, ids, width, height, tiles_x)
+        params, boxes = _parallel(_pack, m, q, col, o, smax, offsets, ids, gboxes, width, height, tiles_x)
         frags = _fragment_buffers(boxes, col.dtype, record=any(ctx.needs_input_grad[:4]))
         _parallel(_forward, params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
                   _consts(col.dtype), *frags, _threads(work))

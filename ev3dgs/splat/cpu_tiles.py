@@ -27,8 +27,9 @@ def _span_params(a, b, c, smax, box_width=1 << 30):
     raised by more than the rounding error of the kernel's sigma (so every pixel the kernel's exact test can
     accept lies inside the span): sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is evaluated in 4 roundings of
     relative size u <= 2^-24 (float32), each relative to a term, and the terms' absolute sum is at most
-    (1 + rho) / (1 - rho) times sigma for the positive-definite form (rho = |b| / sqrt(ac) < 1), so an
-    inflation of 1e-6 * (1 + rho) / (1 - rho) (> 16 u) relative, plus 1e-9 absolute, covers it. Not
+    (1 + rho) / (1 - rho) times sigma for the positive-definite form (rho = |b| / sqrt(ac) < 1), which is
+    (1 + rho)^2 ac / det <= 4 ac / det; so an inflation of 4e-6 ac / det (> 16 u times that bound; no square
+    root) relative, plus 1e-9 absolute, covers it. Not
     positive definite (ok False): no span, the caller keeps the whole box row (the kernel skips sigma < 0).
     Nor for a box narrower than SPAN_MIN_WIDTH (``box_width`` = x1 - x0): the whole row costs less there."""
     if box_width < SPAN_MIN_WIDTH:
@@ -37,8 +38,7 @@ def _span_params(a, b, c, smax, box_width=1 << 30):
     det = a64 * c64 - b64 * b64
     if not (a64 > 0.0 and det > 0.0):
         return False, det, 0.0
-    rho = min(abs(b64) / np.sqrt(a64 * c64), 1.0 - 1e-12)
-    s = np.float64(smax) * (1.0 + 1e-6 * (1.0 + rho) / (1.0 - rho)) + 1e-9
+    s = np.float64(smax) * (1.0 + 4e-6 * (a64 * c64 / det)) + 1e-9
     return True, det, s
 
 
@@ -88,12 +88,54 @@ def _entry(params, k, col):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _tile_rect(mx, my, r, width, height):
-    """Tile rectangle (tx0, tx1, ty0, ty1) a Gaussian's radius box touches; tx0 > tx1 when off-image."""
-    x0, x1, y0, y1 = _box(mx, my, r, 0, 0, width - 1, height - 1)
-    if x0 > x1 or y0 > y1:
-        return 1, 0, 0, 0
-    return x0 // TILE, x1 // TILE, y0 // TILE, y1 // TILE
+def _ellipse_box(mx, my, a, b, c, smax, bx0, bx1, by0, by1):
+    """The box [bx0, bx1] x [by0, by1] shrunk to the axis-aligned bounds of the Gaussian's cut-off ellipse
+    sigma <= s (s: smax inflated against the kernel's rounding, as in _span_params): for sigma = 0.5 d^T Q d,
+    Q = [[a, b], [b, c]], the half-widths are sqrt(2 s c / det) in x and sqrt(2 s a / det) in y, widened by
+    1e-6 px against this float64 solve. The radius box is a square around the ellipse's longest axis, so for
+    an elongated Gaussian this one is much smaller (on a trained demo step 57 % of the pixels the square boxes
+    visited were outside the ellipse). Not positive definite, or smax not finite: the box as given; s <= 0:
+    empty (a kernel only composites 0 <= sigma <= smax)."""
+    ok, det, s = _span_params(a, b, c, smax)
+    if not ok or not np.isfinite(s):
+        return bx0, bx1, by0, by1
+    if s <= 0.0:
+        return 0, -1, 0, -1
+    k = 2.0 * s / det
+    hx = np.sqrt(k * np.float64(c)) + 1e-6
+    hy = np.sqrt(k * np.float64(a)) + 1e-6
+    bx0 = max(bx0, int(np.ceil(np.float64(mx) - hx)))
+    bx1 = min(bx1, int(np.floor(np.float64(mx) + hx)))
+    by0 = max(by0, int(np.ceil(np.float64(my) - hy)))
+    by1 = min(by1, int(np.floor(np.float64(my) + hy)))
+    if bx0 > bx1 or by0 > by1:
+        return 0, -1, 0, -1
+    return bx0, bx1, by0, by1
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _pixel_boxes(means2d, radii, conics, sigma_max, width, height):
+    """(C, N, 4) int32: the pixels (x0, x1, y0, y1) Gaussian g can reach in camera c's image, its radius box
+    clipped to the image and to its cut-off ellipse's bounds (_ellipse_box); (0, -1, 0, -1) when empty or
+    not visible (radius 0). Gaussians in parallel, in index order (the binning then reads one small record
+    per Gaussian in depth order instead of its mean, radius and conic)."""
+    C, N = radii.shape
+    out = np.empty((C, N, 4), np.int32)
+    for g in prange(N):
+        for c in range(C):
+            x0, x1, y0, y1 = 0, -1, 0, -1
+            if radii[c, g] > 0:
+                x0, x1, y0, y1 = _box(means2d[c, g, 0], means2d[c, g, 1], radii[c, g], 0, 0, width - 1, height - 1)
+                if x0 > x1 or y0 > y1:
+                    x0, x1, y0, y1 = 0, -1, 0, -1
+                else:
+                    x0, x1, y0, y1 = _ellipse_box(means2d[c, g, 0], means2d[c, g, 1], conics[c, g, 0],
+                                                  conics[c, g, 1], conics[c, g, 2], sigma_max[g], x0, x1, y0, y1)
+            out[c, g, 0] = x0
+            out[c, g, 1] = x1
+            out[c, g, 2] = y0
+            out[c, g, 3] = y1
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -147,12 +189,13 @@ def _stable_argsort(values):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
+def _bin(boxes, radii, depths, tiles_x, tiles_y):
     """Counting sort of (camera, tile, Gaussian) triples, all cameras at once (cameras in parallel: each
     writes its own rows and its own slice of ids). Per camera the visible Gaussians (radius > 0) are put
-    in depth order by a stable sort (ties by index), then counted and placed per tile, so every tile's
-    list is in depth order. Returns (offsets (C * n_tiles + 1,), ids): camera c's tile t (global tile
-    c * n_tiles + t) holds ids[offsets[g]:offsets[g + 1]], front to back."""
+    in depth order by a stable sort (ties by index), then counted and placed in every tile their pixel box
+    (boxes (C, N, 4) from _pixel_boxes) touches, so every tile's list is in depth order. Returns (offsets
+    (C * n_tiles + 1,), ids): camera c's tile t (global tile c * n_tiles + t) holds
+    ids[offsets[g]:offsets[g + 1]], front to back."""
     C, N = radii.shape
     n_tiles = tiles_x * tiles_y
     counts = np.zeros((C, n_tiles + 1), np.int64)
@@ -165,9 +208,11 @@ def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
         for j in range(order.shape[0]):
             g = order[j]
             orders[c, j] = g
-            tx0, tx1, ty0, ty1 = _tile_rect(means2d[c, g, 0], means2d[c, g, 1], radii[c, g], width, height)
-            for ty in range(ty0, ty1 + 1):
-                for tx in range(tx0, tx1 + 1):
+            x0, x1, y0, y1 = boxes[c, g, 0], boxes[c, g, 1], boxes[c, g, 2], boxes[c, g, 3]
+            if x0 > x1:
+                continue
+            for ty in range(y0 // TILE, y1 // TILE + 1):
+                for tx in range(x0 // TILE, x1 // TILE + 1):
                     counts[c, ty * tiles_x + tx + 1] += 1
     offsets = np.empty(C * n_tiles + 1, np.int64)
     offsets[0] = 0
@@ -179,49 +224,25 @@ def _bin(means2d, radii, depths, width, height, tiles_x, tiles_y):
         fill = offsets[c * n_tiles:(c + 1) * n_tiles].copy()
         for j in range(n_vis[c]):
             g = orders[c, j]
-            tx0, tx1, ty0, ty1 = _tile_rect(means2d[c, g, 0], means2d[c, g, 1], radii[c, g], width, height)
-            for ty in range(ty0, ty1 + 1):
-                for tx in range(tx0, tx1 + 1):
+            x0, x1, y0, y1 = boxes[c, g, 0], boxes[c, g, 1], boxes[c, g, 2], boxes[c, g, 3]
+            if x0 > x1:
+                continue
+            for ty in range(y0 // TILE, y1 // TILE + 1):
+                for tx in range(x0 // TILE, x1 // TILE + 1):
                     t = ty * tiles_x + tx
                     ids[fill[t]] = g
                     fill[t] += 1
     return offsets, ids
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _ellipse_box(mx, my, a, b, c, smax, bx0, bx1, by0, by1):
-    """The box [bx0, bx1] x [by0, by1] shrunk to the axis-aligned bounds of the Gaussian's cut-off ellipse
-    sigma <= s (s: smax inflated against the kernel's rounding, as in _span_params): for sigma = 0.5 d^T Q d,
-    Q = [[a, b], [b, c]], the half-widths are sqrt(2 s c / det) in x and sqrt(2 s a / det) in y, widened by
-    1e-6 px against this float64 solve. The radius box is a square around the ellipse's longest axis, so for
-    an elongated Gaussian this one is much smaller (on a trained demo step 57 % of the pixels the square boxes
-    visited were outside the ellipse). Not positive definite, or smax not finite: the box as given; s <= 0:
-    empty (a kernel only composites 0 <= sigma <= smax)."""
-    ok, det, s = _span_params(a, b, c, smax)
-    if not ok or not np.isfinite(s):
-        return bx0, bx1, by0, by1
-    if s <= 0.0:
-        return 0, -1, 0, -1
-    hx = np.sqrt(2.0 * s * np.float64(c) / det) + 1e-6
-    hy = np.sqrt(2.0 * s * np.float64(a) / det) + 1e-6
-    bx0 = max(bx0, int(np.ceil(np.float64(mx) - hx)))
-    bx1 = min(bx1, int(np.floor(np.float64(mx) + hx)))
-    by0 = max(by0, int(np.ceil(np.float64(my) - hy)))
-    by1 = min(by1, int(np.floor(np.float64(my) + hy)))
-    if bx0 > bx1 or by0 > by1:
-        return 0, -1, 0, -1
-    return bx0, bx1, by0, by1
-
-
 @njit(cache=True, nogil=True, parallel=True)
-def _pack(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, width, height, tiles_x):
+def _pack(means2d, conics, colors, opacities, sigma_max, offsets, ids, gboxes, width, height, tiles_x):
     """The tile kernels' inputs per tile-list entry, in list order: entry k (Gaussian g = ids[k] as its
     camera sees it, in its tile) gets params[k] = (mx, my, a, b, c, opacity, sigma_max, colour...) in the
-    colours' dtype and boxes[k] = (bx0, bx1, by0, by1), g's radius box clipped to the tile and to its cut-off
-    ellipse's bounds (_ellipse_box; (0, -1, 0, -1) when empty): every pixel k can composite lies inside, so
-    its area bounds the fragments k can have. The forward and backward kernels then read their
-    entries as one forward stream instead of gathering each from five per-Gaussian arrays (measured on a
-    trained demo step, 118k entries: forward kernel 17.0 -> 14.7 ms including this pass)."""
+    colours' dtype and boxes[k] = (bx0, bx1, by0, by1), g's pixel box (_bin's gboxes: radius box and cut-off
+    ellipse bounds) clipped to the tile ((0, -1, 0, -1) when empty): every pixel k can composite lies
+    inside, so its area bounds the fragments k can have. The forward and backward kernels then read their
+    entries as one forward stream instead of gathering each from five per-Gaussian arrays."""
     n_tiles = tiles_x * (-(-height // TILE))
     D = colors.shape[2]
     params = np.empty((ids.shape[0], 7 + D), colors.dtype)
@@ -232,9 +253,8 @@ def _pack(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, wi
         w, h = min(TILE, width - x0), min(TILE, height - y0)
         for k in range(offsets[gt], offsets[gt + 1]):
             g = ids[k]
-            mx, my = means2d[cam, g, 0], means2d[cam, g, 1]
-            params[k, 0] = mx
-            params[k, 1] = my
+            params[k, 0] = means2d[cam, g, 0]
+            params[k, 1] = means2d[cam, g, 1]
             params[k, 2] = conics[cam, g, 0]
             params[k, 3] = conics[cam, g, 1]
             params[k, 4] = conics[cam, g, 2]
@@ -242,12 +262,10 @@ def _pack(means2d, conics, colors, opacities, radii, sigma_max, offsets, ids, wi
             params[k, 6] = sigma_max[g]
             for d in range(D):
                 params[k, 7 + d] = colors[cam, g, d]
-            bx0, bx1, by0, by1 = _box(mx, my, radii[cam, g], x0, y0, x0 + w - 1, y0 + h - 1)
+            bx0, bx1 = max(x0, gboxes[cam, g, 0]), min(x0 + w - 1, gboxes[cam, g, 1])
+            by0, by1 = max(y0, gboxes[cam, g, 2]), min(y0 + h - 1, gboxes[cam, g, 3])
             if bx0 > bx1 or by0 > by1:
                 bx0, bx1, by0, by1 = 0, -1, 0, -1
-            else:
-                bx0, bx1, by0, by1 = _ellipse_box(mx, my, params[k, 2], params[k, 3], params[k, 4], params[k, 6],
-                                                  bx0, bx1, by0, by1)
             boxes[k, 0] = bx0
             boxes[k, 1] = bx1
             boxes[k, 2] = by0
