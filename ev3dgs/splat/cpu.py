@@ -224,23 +224,21 @@ class _RasterizeCPU(torch.autograd.Function):
         # replays the fragments when the forward recorded them (frags not empty), else recomputes them
         _parallel(_backward, params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last, gi, ga,
                   per_pair, _consts(dtype), *frags, _threads(work))
-        g = _parallel(_reduce, ids, per_pair, offsets, C, N)
+        g_mean, g_conic, g_ops, g_col = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None
         if ctx.needs_input_grad[8]:
             grad_bg = torch.from_numpy((gi * t_final[..., None]).sum(axis=(1, 2)).sum(axis=0)).to(background.dtype)
-        g_op = g[0, :, 5].copy()
+        g_op = g_ops[0].copy()
         for c in range(1, C):  # fixed camera order
-            g_op += g[c, :, 5]
-        g_col = g[:, :, 6:]
+            g_op += g_ops[c]
         if ctx.shared_colors:
             g_sum = g_col[0].copy()
             for c in range(1, C):
                 g_sum += g_col[c]
             g_col = g_sum
         t = torch.from_numpy
-        return (t(np.ascontiguousarray(g[..., 0:2])).to(means2d.dtype),
-                t(np.ascontiguousarray(g[..., 2:5])).to(conics.dtype), t(np.ascontiguousarray(g_col)).to(colors.dtype),
+        return (t(g_mean).to(means2d.dtype), t(g_conic).to(conics.dtype), t(g_col).to(colors.dtype),
                 t(g_op).to(opacities.dtype), None, None, None, None, grad_bg)
 
 

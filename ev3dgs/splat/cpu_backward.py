@@ -139,12 +139,23 @@ def _backward(params, boxes, offsets, work, background, width, height, tiles_x, 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _reduce(ids, per_pair, offsets, n_cameras, n):
-    """Per camera (in parallel: disjoint rows), a serial sum in tile-list order: (C, N, 6 + D)."""
-    out = np.zeros((n_cameras, n, per_pair.shape[1]), per_pair.dtype)
+    """Per camera (in parallel: disjoint rows), a serial sum in tile-list order, straight into the layouts
+    the autograd function returns: means2d (C, N, 2), conics (C, N, 3), opacity (C, N), colours (C, N, D)."""
+    D = per_pair.shape[1] - 6
+    g_mean = np.zeros((n_cameras, n, 2), per_pair.dtype)
+    g_conic = np.zeros((n_cameras, n, 3), per_pair.dtype)
+    g_op = np.zeros((n_cameras, n), per_pair.dtype)
+    g_col = np.zeros((n_cameras, n, D), per_pair.dtype)
     n_tiles = (offsets.shape[0] - 1) // n_cameras
     for c in prange(n_cameras):
         for k in range(offsets[c * n_tiles], offsets[(c + 1) * n_tiles]):
             g = ids[k]
-            for j in range(per_pair.shape[1]):
-                out[c, g, j] += per_pair[k, j]
-    return out
+            g_mean[c, g, 0] += per_pair[k, 0]
+            g_mean[c, g, 1] += per_pair[k, 1]
+            g_conic[c, g, 0] += per_pair[k, 2]
+            g_conic[c, g, 1] += per_pair[k, 3]
+            g_conic[c, g, 2] += per_pair[k, 4]
+            g_op[c, g] += per_pair[k, 5]
+            for d in range(D):
+                g_col[c, g, d] += per_pair[k, 6 + d]
+    return g_mean, g_conic, g_op, g_col
