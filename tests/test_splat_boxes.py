@@ -70,3 +70,14 @@ def test_ellipse_box_leaves_degenerate_and_empty_cases_safe():
                         np.float32(-0.5), 0, 9, 0, 9) == (0, -1, 0, -1)
     assert _ellipse_box(np.float32(5), np.float32(5), np.float32(1), np.float32(0), np.float32(1),
                         np.float32(np.nan), 0, 9, 0, 9) == (0, 9, 0, 9)
+
+
+def test_a_nearly_flat_form_keeps_its_box():
+    """A huge, nearly flat Gaussian (conic ~1e-38: half-widths ~1e19 px, past int64): the ellipse bounds are
+    clamped before the int conversion, so the box stays the given one instead of wrapping to empty; the same
+    for the row span."""
+    tiny = np.float32(1e-38)
+    smax = np.float32(math.log(255.0))
+    assert _ellipse_box(np.float32(5), np.float32(5), tiny, np.float32(0), tiny, smax, 0, 15, 0, 15) == (0, 15, 0, 15)
+    ok, det, s = _span_params(tiny, np.float32(0), tiny, smax)
+    assert ok and _row_span(ok, tiny, np.float32(0), det, s, np.float32(5), np.float32(3), 0, 15) == (0, 15)

@@ -5,8 +5,9 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
 
 * binning (one numba call, cameras in parallel): per camera the Gaussians are depth-sorted once, then
   counted and placed per 16x16 tile (a counting sort), so every tile's list is already in depth order.
-  Nothing is dropped: a Gaussian goes to every tile its (opacity-aware, exact) radius touches, so the
-  per-tile lists hold every Gaussian that can reach a pixel.
+  Nothing is dropped: a Gaussian goes to every tile its pixel box touches (its opacity-aware, exact radius
+  box cut to the bounds of its cut-off ellipse, cpu_tiles._pixel_boxes), so the per-tile lists hold every
+  Gaussian that can reach a pixel.
 * packing (cpu_tiles._pack): each tile-list entry's Gaussian data (mean, conic, opacity, cut-off, colour)
   copied in list order, so the tile kernels stream it instead of gathering it from per-Gaussian arrays, and
   its pixel box: the radius box clipped to the tile and to the axis-aligned bounds of the cut-off ellipse
@@ -85,7 +86,7 @@ def _forward(params, boxes, offsets, work, background, width, height, tiles_x, i
                 if n_done == P:  # every pixel done: no later entry is composited (nor replayed: kmax <= k)
                     break
                 mx, my, a, b, c, o, smax = _entry(params, k, col)
-                # only the pixels of the Gaussian's (exact) radius box can have alpha >= 1/255
+                # only the pixels of the entry's box (radius box, ellipse bounds, tile) can have alpha >= 1/255
                 bx0, bx1, by0, by1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
                 ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
                 nf = 0
@@ -155,7 +156,7 @@ def _threads(work: np.ndarray) -> int:
 
 def _fragment_buffers(boxes, dtype, record: bool) -> tuple:
     """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
-    pixel of every tile-list entry's clipped radius box (an upper bound). Without ``record`` (no input needs a
+    pixel of every tile-list entry's box (an upper bound). Without ``record`` (no input needs a
     gradient) or over FRAGMENT_BUDGET bytes, nothing is recorded (frag_n empty) and a backward recomputes."""
     none = (np.zeros(1, np.int64), np.zeros(0, np.uint8), np.zeros(0, dtype), np.zeros(0, np.int32))
     if not record or len(boxes) == 0:

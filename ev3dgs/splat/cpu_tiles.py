@@ -59,8 +59,8 @@ def _row_span(ok, a, b, det, s, mx, dy, bx0, bx1):
     root = np.sqrt(disc)
     a64 = np.float64(a)
     centre = np.float64(mx) - np.float64(b) * dy64 / a64
-    lo = centre - root / a64 - 1e-6
-    hi = centre + root / a64 + 1e-6
+    lo = max(centre - root / a64 - 1e-6, bx0 - 1.0)  # clamped before the int conversion (no int64 overflow)
+    hi = min(centre + root / a64 + 1e-6, bx1 + 1.0)
     return max(bx0, int(np.ceil(lo))), min(bx1, int(np.floor(hi)))
 
 
@@ -104,10 +104,12 @@ def _ellipse_box(mx, my, a, b, c, smax, bx0, bx1, by0, by1):
     k = 2.0 * s / det
     hx = np.sqrt(k * np.float64(c)) + 1e-6
     hy = np.sqrt(k * np.float64(a)) + 1e-6
-    bx0 = max(bx0, int(np.ceil(np.float64(mx) - hx)))
-    bx1 = min(bx1, int(np.floor(np.float64(mx) + hx)))
-    by0 = max(by0, int(np.ceil(np.float64(my) - hy)))
-    by1 = min(by1, int(np.floor(np.float64(my) + hy)))
+    # bounds clamped to one pixel outside the box before the int conversion: a huge (or infinite) half-width
+    # of a nearly flat form must not overflow int64 (which would wrap the box to empty)
+    bx0 = max(bx0, int(np.ceil(max(np.float64(mx) - hx, bx0 - 1.0))))
+    bx1 = min(bx1, int(np.floor(min(np.float64(mx) + hx, bx1 + 1.0))))
+    by0 = max(by0, int(np.ceil(max(np.float64(my) - hy, by0 - 1.0))))
+    by1 = min(by1, int(np.floor(min(np.float64(my) + hy, by1 + 1.0))))
     if bx0 > bx1 or by0 > by1:
         return 0, -1, 0, -1
     return bx0, bx1, by0, by1
