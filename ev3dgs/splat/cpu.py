@@ -154,6 +154,12 @@ def _threads(work: np.ndarray) -> int:
     return max(1, min(numba.get_num_threads(), len(work)))
 
 
+def _per_camera(n_cameras: int) -> int:
+    """Work items per camera for the binning, which is parallel over cameras: enough
+    that fewer cameras than threads still keep every thread busy; 1 when there are as many cameras."""
+    return max(1, -(-numba.get_num_threads() // max(1, n_cameras)))
+
+
 def _fragment_buffers(boxes, dtype, record: bool) -> tuple:
     """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
     pixel of every tile-list entry's box (an upper bound). Without ``record`` (no input needs a
@@ -197,7 +203,7 @@ class _RasterizeCPU(torch.autograd.Function):
         with np.errstate(divide="ignore"):
             smax = (np.log(np.maximum(o.astype(np.float64), 0.0) * 255.0) + 1e-6).astype(col.dtype)
         gboxes = _parallel(_pixel_boxes, m, r, q, smax, width, height)
-        offsets, ids = _parallel(_bin, gboxes, r, _np(depths), tiles_x, tiles_y)
+        offsets, ids = _parallel(_bin, gboxes, r, _np(depths), tiles_x, tiles_y, _per_camera(C))
         work = _work_order(offsets)
         image = np.empty((C, height, width, col.shape[2]), col.dtype)
         t_final = np.empty((C, height, width), col.dtype)

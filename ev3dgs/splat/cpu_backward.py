@@ -140,7 +140,9 @@ def _backward(params, boxes, offsets, work, background, width, height, tiles_x, 
 @njit(cache=True, nogil=True, parallel=True)
 def _reduce(ids, per_pair, offsets, n_cameras, n):
     """Per camera (in parallel: disjoint rows), a serial sum in tile-list order, straight into the layouts
-    the autograd function returns: means2d (C, N, 2), conics (C, N, 3), opacity (C, N), colours (C, N, D)."""
+    the autograd function returns: means2d (C, N, 2), conics (C, N, 3), opacity (C, N), colours (C, N, D).
+    (Splitting one camera's sum over threads by Gaussian, each thread scanning the whole list, measured no
+    faster: the scan is the cost.)"""
     D = per_pair.shape[1] - 6
     g_mean = np.zeros((n_cameras, n, 2), per_pair.dtype)
     g_conic = np.zeros((n_cameras, n, 3), per_pair.dtype)

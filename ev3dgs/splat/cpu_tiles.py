@@ -191,40 +191,53 @@ def _stable_argsort(values):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _bin(boxes, radii, depths, tiles_x, tiles_y):
-    """Counting sort of (camera, tile, Gaussian) triples, all cameras at once (cameras in parallel: each
-    writes its own rows and its own slice of ids). Per camera the visible Gaussians (radius > 0) are put
-    in depth order by a stable sort (ties by index), then counted and placed in every tile their pixel box
-    (boxes (C, N, 4) from _pixel_boxes) touches, so every tile's list is in depth order. Returns (offsets
-    (C * n_tiles + 1,), ids): camera c's tile t (global tile c * n_tiles + t) holds
-    ids[offsets[g]:offsets[g + 1]], front to back."""
+def _bin(boxes, radii, depths, tiles_x, tiles_y, n_chunks=1):
+    """Counting sort of (camera, tile, Gaussian) triples, all cameras at once. Per camera the visible
+    Gaussians (radius > 0) are put in depth order by a stable sort (ties by index), then counted and placed
+    in every tile their pixel box (boxes (C, N, 4) from _pixel_boxes) touches, so every tile's list is in
+    depth order. Returns (offsets (C * n_tiles + 1,), ids): camera c's tile t (global tile c * n_tiles + t)
+    holds ids[offsets[g]:offsets[g + 1]], front to back.
+
+    Parallel over (camera, chunk): each camera's depth order is cut into ``n_chunks`` consecutive pieces
+    (more than one where there are fewer cameras than threads), each counted and placed by one thread into
+    its own slots (tile by tile, the chunks' slots follow each other in depth order), so the lists are the
+    same for any n_chunks and thread count."""
     C, N = radii.shape
     n_tiles = tiles_x * tiles_y
-    counts = np.zeros((C, n_tiles + 1), np.int64)
     orders = np.empty((C, N), np.int64)
     n_vis = np.zeros(C, np.int64)
     for c in prange(C):
         vis = np.flatnonzero(radii[c] > 0)
         order = vis[_stable_argsort(depths[c][vis])]
         n_vis[c] = order.shape[0]
-        for j in range(order.shape[0]):
-            g = order[j]
-            orders[c, j] = g
+        orders[c, :order.shape[0]] = order
+    n_items = C * n_chunks
+    counts = np.zeros((n_items, n_tiles), np.int64)
+    for item in prange(n_items):
+        c, ch = item // n_chunks, item % n_chunks
+        for j in range(ch * n_vis[c] // n_chunks, (ch + 1) * n_vis[c] // n_chunks):
+            g = orders[c, j]
             x0, x1, y0, y1 = boxes[c, g, 0], boxes[c, g, 1], boxes[c, g, 2], boxes[c, g, 3]
             if x0 > x1:
                 continue
             for ty in range(y0 // TILE, y1 // TILE + 1):
                 for tx in range(x0 // TILE, x1 // TILE + 1):
-                    counts[c, ty * tiles_x + tx + 1] += 1
+                    counts[item, ty * tiles_x + tx] += 1
     offsets = np.empty(C * n_tiles + 1, np.int64)
-    offsets[0] = 0
-    for c in range(C):  # serial prefix sum over (camera, tile)
+    starts = np.empty((n_items, n_tiles), np.int64)
+    pos = 0
+    for c in range(C):  # serial prefix sum over (camera, tile, chunk)
         for t in range(n_tiles):
-            offsets[c * n_tiles + t + 1] = offsets[c * n_tiles + t] + counts[c, t + 1]
-    ids = np.empty(offsets[C * n_tiles], np.int64)
-    for c in prange(C):
-        fill = offsets[c * n_tiles:(c + 1) * n_tiles].copy()
-        for j in range(n_vis[c]):
+            offsets[c * n_tiles + t] = pos
+            for ch in range(n_chunks):
+                starts[c * n_chunks + ch, t] = pos
+                pos += counts[c * n_chunks + ch, t]
+    offsets[C * n_tiles] = pos
+    ids = np.empty(pos, np.int64)
+    for item in prange(n_items):
+        c, ch = item // n_chunks, item % n_chunks
+        fill = starts[item].copy()
+        for j in range(ch * n_vis[c] // n_chunks, (ch + 1) * n_vis[c] // n_chunks):
             g = orders[c, j]
             x0, x1, y0, y1 = boxes[c, g, 0], boxes[c, g, 1], boxes[c, g, 2], boxes[c, g, 3]
             if x0 > x1:
