@@ -4,8 +4,8 @@ Same semantics and constants as `reference` (front-to-back, alpha = min(0.99, o*
 sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4), but:
 
 * binning (one numba call, cameras in parallel, and chunks of a camera when there are fewer cameras than
-  threads): per camera the Gaussians are depth-sorted once, then
-  counted and placed per 16x16 tile (a counting sort), so every tile's list is already in depth order.
+  threads): per camera the Gaussians are depth-sorted once, then counted and placed per 16x16 tile (a
+  counting sort), so every tile's list is already in depth order.
   Nothing is dropped: a Gaussian goes to every tile its pixel box touches (its opacity-aware, exact radius
   box cut to the bounds of its cut-off ellipse, cpu_tiles._pixel_boxes), so the per-tile lists hold every
   Gaussian that can reach a pixel.
