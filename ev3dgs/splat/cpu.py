@@ -156,8 +156,8 @@ def _threads(work: np.ndarray) -> int:
 
 
 def _per_camera(n_cameras: int) -> int:
-    """Work items per camera for the binning, which is parallel over cameras: enough
-    that fewer cameras than threads still keep every thread busy; 1 when there are as many cameras."""
+    """Work items per camera for the binning, which is parallel over cameras: enough that fewer cameras
+    than threads still keep every thread busy; 1 when there are at least as many cameras as threads."""
     return max(1, -(-numba.get_num_threads() // max(1, n_cameras)))
 
 
