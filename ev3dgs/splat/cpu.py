@@ -73,8 +73,7 @@ def _forward(params, boxes, offsets, work, background, width, height, tiles_x, i
     for t in prange(n_threads):  # tiles dealt round robin to the threads (see cpu._work_order)
         for i in range(t, work.shape[0], n_threads):
             gt = work[i]
-            cam, tile = gt // n_tiles, gt % n_tiles
-            x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, image)
+            cam, x0, y0, w, h, xs, ys = _tile(gt, n_tiles, tiles_x, width, height, image)
             P = w * h
             T = np.ones(P, image.dtype)
             C = np.zeros((P, D), image.dtype)

@@ -96,8 +96,7 @@ def _backward(params, boxes, offsets, work, background, width, height, tiles_x, 
     for t in prange(n_threads):  # tiles dealt round robin to the threads (see cpu._work_order)
         for i in range(t, work.shape[0], n_threads):
             gt = work[i]
-            cam, tile = gt // n_tiles, gt % n_tiles
-            x0, y0, w, h, xs, ys = _tile(tile, tiles_x, width, height, t_final)
+            cam, x0, y0, w, h, xs, ys = _tile(gt, n_tiles, tiles_x, width, height, t_final)
             T, S, G, GA, TF, stop, kmax = _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha,
                                                       background, offsets[gt])
             gcol = np.empty(D, t_final.dtype)

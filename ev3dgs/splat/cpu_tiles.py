@@ -65,8 +65,10 @@ def _row_span(ok, a, b, det, s, mx, dy, bx0, bx1):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _tile(tile, tiles_x, width, height, like):
-    """Origin, size and pixel-centre coordinates (in like's dtype, so float32 maths stays float32) of a tile."""
+def _tile(gt, n_tiles, tiles_x, width, height, like):
+    """Global tile gt (camera cam's tile gt % n_tiles) -> (cam, origin, size, pixel-centre coordinates in
+    like's dtype, so float32 maths stays float32)."""
+    cam, tile = gt // n_tiles, gt % n_tiles
     x0, y0 = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
     w, h = min(TILE, width - x0), min(TILE, height - y0)
     xs = np.empty(w, like.dtype)
@@ -75,7 +77,7 @@ def _tile(tile, tiles_x, width, height, like):
         xs[i] = x0 + i
     for i in range(h):
         ys[i] = y0 + i
-    return x0, y0, w, h, xs, ys
+    return cam, x0, y0, w, h, xs, ys
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -190,6 +192,13 @@ def _stable_argsort(values):
     return order
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _tile_rect(boxes, c, g):
+    """Tiles (tx0, tx1, ty0, ty1) of Gaussian g's pixel box in camera c; an empty box, stored as
+    (0, -1, 0, -1), gives the empty range tx0 = 0 > tx1 = -1."""
+    return boxes[c, g, 0] // TILE, boxes[c, g, 1] // TILE, boxes[c, g, 2] // TILE, boxes[c, g, 3] // TILE
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _bin(boxes, radii, depths, tiles_x, tiles_y, n_chunks=1):
     """Counting sort of (camera, tile, Gaussian) triples, all cameras at once. Per camera the visible
@@ -216,12 +225,9 @@ def _bin(boxes, radii, depths, tiles_x, tiles_y, n_chunks=1):
     for item in prange(n_items):
         c, ch = item // n_chunks, item % n_chunks
         for j in range(ch * n_vis[c] // n_chunks, (ch + 1) * n_vis[c] // n_chunks):
-            g = orders[c, j]
-            x0, x1, y0, y1 = boxes[c, g, 0], boxes[c, g, 1], boxes[c, g, 2], boxes[c, g, 3]
-            if x0 > x1:
-                continue
-            for ty in range(y0 // TILE, y1 // TILE + 1):
-                for tx in range(x0 // TILE, x1 // TILE + 1):
+            tx0, tx1, ty0, ty1 = _tile_rect(boxes, c, orders[c, j])
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
                     counts[item, ty * tiles_x + tx] += 1
     offsets = np.empty(C * n_tiles + 1, np.int64)
     starts = np.empty((n_items, n_tiles), np.int64)
@@ -239,11 +245,9 @@ def _bin(boxes, radii, depths, tiles_x, tiles_y, n_chunks=1):
         fill = starts[item].copy()
         for j in range(ch * n_vis[c] // n_chunks, (ch + 1) * n_vis[c] // n_chunks):
             g = orders[c, j]
-            x0, x1, y0, y1 = boxes[c, g, 0], boxes[c, g, 1], boxes[c, g, 2], boxes[c, g, 3]
-            if x0 > x1:
-                continue
-            for ty in range(y0 // TILE, y1 // TILE + 1):
-                for tx in range(x0 // TILE, x1 // TILE + 1):
+            tx0, tx1, ty0, ty1 = _tile_rect(boxes, c, g)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
                     t = ty * tiles_x + tx
                     ids[fill[t]] = g
                     fill[t] += 1
@@ -263,9 +267,7 @@ def _pack(means2d, conics, colors, opacities, sigma_max, offsets, ids, gboxes, w
     params = np.empty((ids.shape[0], 7 + D), colors.dtype)
     boxes = np.empty((ids.shape[0], 4), np.int32)
     for gt in prange(offsets.shape[0] - 1):
-        cam, tile = gt // n_tiles, gt % n_tiles
-        x0, y0 = (tile % tiles_x) * TILE, (tile // tiles_x) * TILE
-        w, h = min(TILE, width - x0), min(TILE, height - y0)
+        cam, x0, y0, w, h, _, _ = _tile(gt, n_tiles, tiles_x, width, height, params)
         for k in range(offsets[gt], offsets[gt + 1]):
             g = ids[k]
             params[k, 0] = means2d[cam, g, 0]
