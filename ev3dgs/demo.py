@@ -53,7 +53,7 @@ def make_scene(out: Path, scene: str = "lego", seed: int = 0, quiet: bool = Fals
     render = resolve_render(spec, quick=True, **overrides)
     path = out / f"{spec.name}.h5"
     # two Blender workers overlap one view's scene set-up and denoising with another's render (Cycles already
-    # uses every core): 34 -> 28 s for the demo scene on 2 cores, the same file bit for bit
+    # uses every core): 17.3 -> 16.2 s for the demo scene on 2 cores, the same file bit for bit
     stats = make_dataset(spec, render, path, seed=seed, quiet=quiet, workers=min(2, default_jobs()))
     sc = schema.read(path)
     for v in range(len(sc.train)):

@@ -91,6 +91,7 @@ def test_builtin_scene_files_load():
         assert spec.builder and spec.description
         q = resolve_render(spec, quick=True)
         assert q.width <= 128 and q.views <= 4
+        assert spec.render.denoise_prefilter == "accurate" and q.denoise_prefilter == "fast"
     assert load_scene("lowlight").sensor.sensor_noise is not None  # only the dim scene asks for noise
     assert load_scene("lego").sensor.dvs.effects == ()
 
@@ -102,6 +103,8 @@ def test_builtin_scene_files_load():
     ('name = "x"\n[shake]\nmin_hz = 9\nmax_hz = 2\n', "min_hz"),
     ('name = "x"\n[sensor.dvs.leek]\n', "unknown config key sensor.dvs.leek"),
     ('name = "x"\n[quick]\nsamplez = 2\n', "quick"),
+    ('name = "x"\n[render]\ndenoise_prefilter = "FAST"\n', "denoise_prefilter must be one of accurate, fast, none"),
+    ('name = "x"\n[quick]\ndenoise_prefilter = "slow"\n', "quick: .*denoise_prefilter"),
     ('builder = "lego"\n', "name"),
     ('name = "x"\n[render\n', "invalid TOML"),
 ])

@@ -182,7 +182,8 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
     remove_stale_temps(cache)                  # and the cached views' temporaries
     init_kwargs = dict(builder=None if blend else spec.builder, params=spec.params,
                        blend_path=str(blend) if blend else None, width=W, height=H, K=K.tolist(),
-                       samples=render.samples, denoise=render.denoise, background=list(render.background),
+                       samples=render.samples, denoise=render.denoise,
+                       denoise_prefilter=render.denoise_prefilter, background=list(render.background),
                        seed=seed)
     t0 = time.perf_counter()
     results, info, stats.views_rendered = render_all(jobs, init_kwargs, cache, workers, quiet,

@@ -155,6 +155,7 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
     jobs = {f"traj_{i // CHUNK:05d}": poses[i:i + CHUNK] for i in range(0, len(poses), CHUNK)}
     init_kwargs = dict(builder=spec.builder, params=spec.params, blend_path=None, width=W, height=H,
                        K=K.tolist(), samples=render.samples, denoise=render.denoise,
+                       denoise_prefilter=render.denoise_prefilter,
                        background=list(render.background), seed=seed)
     results, _info, rendered = render_all(jobs, init_kwargs, cache, workers, quiet)
     keys = sorted(jobs)
