@@ -56,7 +56,7 @@ def _setup_render(width, height, samples, denoise, seed, prefilter="accurate") -
     if denoise:
         cy.denoiser = "OPENIMAGEDENOISE"
         # how OIDN treats its albedo and normal guides: "accurate" denoises them first (two more filter runs,
-        # whose set-up dominates at small sizes: ~0.12 s a frame at 96x72), "fast" uses them as rendered
+        # whose set-up dominates at small sizes: ~0.13 s a frame at 96x72), "fast" uses them as rendered
         cy.denoising_prefilter = PREFILTERS[prefilter]
     cy.use_preview_denoising = False
     r = scene.render
