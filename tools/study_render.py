@@ -6,6 +6,7 @@ against a high-sample reference (no denoiser) by PSNR of the sRGB-encoded image.
 child process (bpy state is global).
 
     python tools/study_render.py [--quick] [--scene lego] --json tools/results/study_render.json
+    python tools/study_render.py --size 346x260 --spp 4 8 16 32 --json tools/results/study_render_346x260.json
 """
 from __future__ import annotations
 
@@ -53,10 +54,12 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="lego")
     ap.add_argument("--json", default="tools/results/study_render.json")
     ap.add_argument("--plot", default="tools/results/study_render.png")
+    ap.add_argument("--size", help="image size WxH (default 200x150; --quick 96x72)")
+    ap.add_argument("--spp", type=int, nargs="+", help="sample counts (default 1 4 8 16 64 256; --quick up to 64)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    size = (96, 72) if args.quick else (200, 150)
-    spps = (1, 4, 8, 16, 64) if args.quick else (1, 4, 8, 16, 64, 256)
+    size = tuple(int(x) for x in args.size.split("x")) if args.size else (96, 72) if args.quick else (200, 150)
+    spps = args.spp or ((1, 4, 8, 16, 64) if args.quick else (1, 4, 8, 16, 64, 256))
     ref_spp = 1024
     if args.child:
         ns = argparse.Namespace(**json.loads(args.child))
