@@ -171,7 +171,10 @@ def study_one(args, scene: str, d: Path, seed: int, iterations: int, lrs: list[f
     for lr in lrs:
         for frame in args.pose_frame:
             runs[refine_name(lr, frame)] = replace(base, scene=str(pert), refine_poses=True, pose_lr=lr,
-                                                   pose_frame=frame)
+                                                   pose_frame=frame, **({} if args.pose_start is None else
+                                                                        {"pose_start": args.pose_start}),
+                                                   **({} if args.pose_warmup is None else
+                                                      {"pose_warmup": args.pose_warmup}))
     results = {}
     for name, cfg in runs.items():
         run_dir = d / "runs" / f"s{seed}" / run_folder(name)
@@ -266,6 +269,8 @@ def main(argv=None) -> int:
     ap.add_argument("--pose-frame", nargs="+", choices=("world", "camera"), default=[TrainConfig.pose_frame],
                     help="axes of the refined runs' corrections (train --pose-frame), one refined run per frame "
                          "and learning rate (default: TrainConfig's, %(default)s)")
+    ap.add_argument("--pose-start", type=int, help="the refined runs' train --pose-start (default: TrainConfig's)")
+    ap.add_argument("--pose-warmup", type=int, help="the refined runs' train --pose-warmup (default: TrainConfig's)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0],
                     help="perturbation and training seeds, one study each; with several, the JSON also holds "
                          "their mean and standard deviation (default 0)")
@@ -303,6 +308,8 @@ def main(argv=None) -> int:
                                             "trans_frac")}
         out.update(seeds=args.seeds, summary=summarise(per_seed), per_seed=per_seed)
     out["pose_frames"] = args.pose_frame
+    out["pose_start"], out["pose_warmup"] = (TrainConfig.pose_start if args.pose_start is None else args.pose_start,
+                                             TrainConfig.pose_warmup if args.pose_warmup is None else args.pose_warmup)
     out["seconds_total"] = time.perf_counter() - t_all
     out["command"] = "python tools/study_refine.py " + " ".join(argv if argv is not None else sys.argv[1:])
     save_json(args.json, out)
