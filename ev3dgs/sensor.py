@@ -2,11 +2,13 @@
 simulator): how colour becomes the intensity a DVS pixel sees."""
 from __future__ import annotations
 
-import colour
 import numpy as np
 
-# Y row of the sRGB (Rec. 709 primaries, D65) RGB->XYZ matrix: 0.2126, 0.7152, 0.0722.
-LUMINANCE_WEIGHTS = np.ascontiguousarray(colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ[1], dtype=np.float64)
+# Y row of the sRGB (Rec. 709 primaries, D65) RGB->XYZ matrix, as IEC 61966-2-1 and colour-science give it
+# (tests/test_sensor_constants.py checks it against colour.RGB_COLOURSPACES["sRGB"]). Written out rather than
+# read from colour at import: importing colour pulls in matplotlib (~0.8 s), and every trainer process
+# imports this module.
+LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
 BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 _CHANNEL = {"R": 0, "G": 1, "B": 2}

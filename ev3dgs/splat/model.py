@@ -23,7 +23,6 @@ from typing import Iterator
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from .sh import num_sh_bases, rgb_to_sh
@@ -60,6 +59,8 @@ def knn_mean_distance(xyz: np.ndarray, k: int = 3, min_dist: float = 1e-7) -> np
         return np.zeros((0,), dtype=np.float64)
     if p == 1:
         return np.full((1,), 0.01, dtype=np.float64)
+    from scipy.spatial import cKDTree  # here, not at import: scipy.spatial costs ~0.3 s to import
+
     kk = min(k, p - 1)
     dist, _ = cKDTree(xyz).query(xyz, k=kk + 1)  # first column is the point itself
     dist = np.asarray(dist).reshape(p, kk + 1)[:, 1:]
