@@ -140,3 +140,31 @@ def test_bad_arguments_exit_2(tmp_path, capsys, args, match):
     err = capsys.readouterr().err
     assert match in err and err.count("\n") == 1
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_denoise_prefilter_option(tmp_path, monkeypatch, capsys):
+    """--denoise-prefilter reaches the render settings of make-dataset and record; a bad value is a usage
+    error (exit 2, one line); the CLI's choices are the scene schema's."""
+    import ev3dgs.sim.dataset as dataset
+    import ev3dgs.sim.record as record_mod
+    from ev3dgs.sim.scenes import PREFILTERS
+
+    assert sim_cli.PREFILTERS == PREFILTERS
+    got = {}
+    monkeypatch.setattr(dataset, "make_dataset", lambda spec, render, out, **kw: got.setdefault("make", render))
+    monkeypatch.setattr(record_mod, "record", lambda *a, **kw: got.setdefault("record", kw))
+    out = str(tmp_path / "x.h5")
+    assert sim_cli.main(["make-dataset", "--scene", "lego", "--out", out, "--quiet"]) == 0
+    assert got.pop("make").denoise_prefilter == "accurate"
+    assert sim_cli.main(["make-dataset", "--scene", "lego", "--quick", "--out", out, "--quiet"]) == 0
+    assert got.pop("make").denoise_prefilter == "fast"
+    assert sim_cli.main(["make-dataset", "--scene", "lego", "--quick", "--denoise-prefilter", "accurate",
+                         "--out", out, "--quiet"]) == 0
+    assert got.pop("make").denoise_prefilter == "accurate"
+    rec = str(tmp_path / "r.aedat4")
+    assert sim_cli.main(["record", "--scene", "lego", "--out", rec, "--denoise-prefilter", "fast", "--quiet"]) == 0
+    assert got.pop("record")["denoise_prefilter"] == "fast"
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        sim_cli.main(["make-dataset", "--scene", "lego", "--denoise-prefilter", "slow", "--out", out])
+    assert e.value.code == 2 and "denoise-prefilter" in capsys.readouterr().err

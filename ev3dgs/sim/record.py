@@ -111,8 +111,9 @@ def _gray(srgb: np.ndarray) -> np.ndarray:
 def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, exposure_ms: float = 50,
            render_rate_hz: float = 250, width: int = 346, height: int = 260, samples: int = 8, seed: int = 0,
            workers: int = 1, quiet: bool = True, arc_deg: float = 75.0, compression: str = "lz4",
-           keep_cache: bool = False) -> dict:
-    """Render, simulate and write OUT.aedat4 + OUT.trajectory.npz; returns a summary (counts, seconds)."""
+           keep_cache: bool = False, denoise_prefilter: str | None = None) -> dict:
+    """Render, simulate and write OUT.aedat4 + OUT.trajectory.npz; returns a summary (counts, seconds).
+    denoise_prefilter: OIDN's guide prefilter ("accurate", "fast", "none"; None: the scene's)."""
     out = Path(out)
     if out.suffix != ".aedat4":
         raise InputError(f"the recording must end in .aedat4, got {out}")
@@ -123,7 +124,7 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
     spec = load_scene(str(scene_name_or_toml))
     if spec.builder is None:
         raise InputError(f"scene {spec.name!r} names no builder")
-    render = resolve_render(spec, width=width, height=height, samples=samples)
+    render = resolve_render(spec, width=width, height=height, samples=samples, denoise_prefilter=denoise_prefilter)
     W, H = render.width, render.height
     K = intrinsics(W, H, render.fov_deg)
     period_us = 1e6 / fps
