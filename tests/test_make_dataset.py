@@ -144,7 +144,7 @@ def test_bad_arguments_exit_2(tmp_path, capsys, args, match):
 
 def test_denoise_prefilter_option(tmp_path, monkeypatch, capsys):
     """--denoise-prefilter reaches the render settings of make-dataset and record; a bad value is a usage
-    error (exit 2, one line); the CLI's choices are the scene schema's."""
+    error (exit 2, naming the option); the CLI's choices are the scene schema's."""
     import ev3dgs.sim.dataset as dataset
     import ev3dgs.sim.record as record_mod
     from ev3dgs.sim.scenes import PREFILTERS

@@ -5,7 +5,7 @@ from ev3dgs.sensor import LUMINANCE_WEIGHTS
 
 
 def test_luminance_weights_are_colour_science_srgb_y_row():
-    colour = __import__("colour")
+    import colour
     expect = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ[1], dtype=np.float64)
     np.testing.assert_array_equal(LUMINANCE_WEIGHTS, expect)  # the same float64 values, bit for bit
     assert LUMINANCE_WEIGHTS.dtype == np.float64 and LUMINANCE_WEIGHTS.flags.c_contiguous
