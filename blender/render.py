@@ -22,11 +22,11 @@ import numpy as np
 from mathutils import Matrix
 
 from ev3dgs.geometry import blender_to_opencv, opencv_to_blender
+from ev3dgs.sim.scenes import PREFILTERS
 
 from . import builders
 
 _STATE: dict = {}
-PREFILTERS = {"accurate": "ACCURATE", "fast": "FAST", "none": "NONE"}
 
 
 def camera_shift(K, width: int, height: int) -> tuple[float, float]:
@@ -57,7 +57,7 @@ def _setup_render(width, height, samples, denoise, seed, prefilter="accurate") -
         cy.denoiser = "OPENIMAGEDENOISE"
         # how OIDN treats its albedo and normal guides: "accurate" denoises them first (two more filter runs,
         # whose set-up dominates at small sizes: ~0.13 s a frame at 96x72), "fast" uses them as rendered
-        cy.denoising_prefilter = PREFILTERS[prefilter]
+        cy.denoising_prefilter = prefilter.upper()  # Cycles' enum: ACCURATE, FAST, NONE
     cy.use_preview_denoising = False
     r = scene.render
     r.resolution_x, r.resolution_y, r.resolution_percentage = int(width), int(height), 100
@@ -108,7 +108,7 @@ def init_scene(builder: str | None, params: dict | None, blend_path: str | None,
     if builder is not None and blend_path is not None:
         raise ValueError("give either a builder or a blend_path, not both")
     if denoise_prefilter not in PREFILTERS:
-        raise ValueError(f"denoise_prefilter must be one of {sorted(PREFILTERS)}, got {denoise_prefilter!r}")
+        raise ValueError(f"denoise_prefilter must be one of {', '.join(PREFILTERS)}, got {denoise_prefilter!r}")
     bpy.ops.wm.read_factory_settings(use_empty=True)
     info: dict = {}
     if blend_path is not None:
