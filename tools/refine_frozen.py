@@ -1,22 +1,26 @@
 """Study (issue 16): is the rotation left after `--refine-poses` a limit of what the images say, or of the
-joint optimisation?  Pose refinement against a FROZEN scene trained on the true poses.
+joint optimisation?  Pose-only refinement against a FROZEN scene.
 
 The joint problem (`study_refine.py`) lets the Gaussians move while the cameras do: a scene fitted to wrong
 poses can absorb part of each view's error, and the gradients the cameras get come from a scene that is itself
-wrong. Here the scene is fixed: one model is trained on the true poses (the study's "true poses" run, the
-upper bound), its Gaussians are then frozen (every Gaussian learning rate 0, no densification) and only the
-pose corrections are optimised, with the same losses, on the perturbed scene (1 deg + 2 % per view, the study's
-perturbation). With the scene known, the gauge is fixed by the scene (``pose_gauge="none"``); the errors are
-measured as in the study (similarity-aligned centres and orientations) and split into roll and pan/tilt in each
-true camera's axes (``refine_compensation.split_errors``), plus the error without any alignment.
+wrong. Here the scene is trained first and then frozen (every Gaussian learning rate 0, no densification; the
+tool stops if any Gaussian parameter changes), and only the pose corrections are optimised, with the same
+losses, on the perturbed scene (1 deg + 2 % per view, the study's perturbation). ``--scene-from`` picks the
+scene:
 
-* If the frozen scene recovers the rotation (ratio well below 0.5), the images do pin the cameras and the joint
-  run's residual comes from the Gaussians absorbing pose error: a schedule question.
-* If it does not, not even a correct scene makes the images tell the rotation apart at this size and field of
-  view: observability, whatever the optimiser.
+* ``true``: trained on the true poses (the study's "true poses" run, the upper bound), one for all seeds.
+  If the rotation then falls well below half, the images do pin the cameras;
+* ``perturbed``: trained on the perturbed poses without refinement (what a scene fitted to wrong poses
+  leaves for the cameras to find);
+* ``joint``: trained on the perturbed poses with ``--refine-poses``; the pose-only phase starts from its
+  corrections (does a final pose-only phase help a joint run?).
 
-    python tools/refine_frozen.py --scene lego96.h5 --seeds 0 1 2 --scene-steps 1500 --pose-steps 400 \
-        --json tools/results/refine_frozen.json
+The scene fixes the gauge (``pose_gauge="none"``); the errors are measured as in the study
+(similarity-aligned centres and orientations), split into roll and pan/tilt in each true camera's axes
+(``refine_compensation.split_errors``), and without any alignment.
+
+    python tools/refine_frozen.py --scene lego96.h5 --seeds 0 1 2 --scene-steps 1500 --pose-steps 1200 \
+        --scene-from true --json tools/results/refine_frozen_true_1200.json
 """
 from __future__ import annotations
 
@@ -113,7 +117,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", required=True, help="scene .h5 with /train/sharp (e.g. the quick lego at 96x72)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="perturbation seeds (default 0 1 2)")
     ap.add_argument("--scene-steps", type=int, default=1500, help="steps of the known scene (default 1500)")
-    ap.add_argument("--pose-steps", type=int, default=400, help="pose-only steps (default 400)")
+    ap.add_argument("--pose-steps", type=int, default=1200, help="pose-only steps (default 1200)")
     ap.add_argument("--pose-lr", type=float, default=3e-3, help="pose learning rate (default 3e-3)")
     ap.add_argument("--pose-frame", default="camera", choices=("world", "camera"))
     ap.add_argument("--scene-from", default="true", choices=("true", "perturbed", "joint"),

@@ -161,7 +161,7 @@ def study_one(args, scene: str, d: Path, seed: int, iterations: int, lrs: list[f
     pert = d / f"perturbed_s{seed}.h5"
     truth = perturb_scene(scene, pert, args.rot_deg, args.trans_frac, seed)
     base = TrainConfig(scene=scene, iterations=iterations, init_points=5000, seed=seed, device="cpu",
-                       backend="cpu", checkpoint_every=10 ** 6)
+                       backend="cpu", checkpoint_every=10 ** 6, densify=not args.no_densify)
     sc0 = schema.read(scene)
     K0 = np.asarray(sc0.camera.K)
     bounds = np.asarray(sc0.bounds) if sc0.bounds is not None else np.array([[-1.0] * 3, [1.0] * 3])
@@ -274,6 +274,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0],
                     help="perturbation and training seeds, one study each; with several, the JSON also holds "
                          "their mean and standard deviation (default 0)")
+    ap.add_argument("--no-densify", action="store_true",
+                    help="every run keeps its initial Gaussians (train --no-densify): a scene with less freedom to "
+                         "absorb pose error (default: off)")
     ap.add_argument("--skip-true", action="store_true",
                     help="leave out the training on the true poses (the upper bound) to save time (default: off)")
     ap.add_argument("--json", default="tools/results/study_refine.json", help="results (default %(default)s)")
@@ -308,6 +311,7 @@ def main(argv=None) -> int:
                                             "trans_frac")}
         out.update(seeds=args.seeds, summary=summarise(per_seed), per_seed=per_seed)
     out["pose_frames"] = args.pose_frame
+    out["densify"] = not args.no_densify
     out["pose_start"], out["pose_warmup"] = (TrainConfig.pose_start if args.pose_start is None else args.pose_start,
                                              TrainConfig.pose_warmup if args.pose_warmup is None else args.pose_warmup)
     out["seconds_total"] = time.perf_counter() - t_all
