@@ -102,6 +102,13 @@ def frozen_refine(pert_scene: str, known: dict, steps: int, lr: float, frame: st
     return study_refine.mid_poses(tr.pose_refiner.all_c2w(), np.asarray(tr.pose_refiner.times), ex), psnr
 
 
+def scene_geometry(path: str):
+    """(schema scene, K, bounds) of a scene file: what the error measures need."""
+    sc = schema.read(path)
+    bounds = np.asarray(sc.bounds) if sc.bounds is not None else np.array([[-1.0] * 3, [1.0] * 3])
+    return sc, np.asarray(sc.camera.K), bounds
+
+
 def measure(est_mid, true_mid, K, bounds) -> dict:
     e = study_refine.errors(est_mid, true_mid, K, bounds)
     split = refine_compensation.split_errors(est_mid, true_mid, K, bounds)
@@ -129,9 +136,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default="tools/results/refine_frozen.json")
     ap.add_argument("--keep", help="folder to keep the runs in (default: a temporary one)")
     args = ap.parse_args(argv)
-    sc = schema.read(args.scene)
-    K = np.asarray(sc.camera.K)
-    bounds = np.asarray(sc.bounds) if sc.bounds is not None else np.array([[-1.0] * 3, [1.0] * 3])
+    sc, K, bounds = scene_geometry(args.scene)
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(args.keep or tmp)
         d.mkdir(parents=True, exist_ok=True)

@@ -72,9 +72,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default="tools/results/refine_rounds.json")
     ap.add_argument("--keep", help="folder to keep the scenes and runs in (default: a temporary one)")
     args = ap.parse_args(argv)
-    sc = schema.read(args.scene)
-    K = np.asarray(sc.camera.K)
-    bounds = np.asarray(sc.bounds) if sc.bounds is not None else np.array([[-1.0] * 3, [1.0] * 3])
+    sc, K, bounds = refine_frozen.scene_geometry(args.scene)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(args.keep or tmp)
