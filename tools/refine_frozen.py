@@ -29,7 +29,6 @@ import json
 import statistics
 import sys
 import tempfile
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +40,6 @@ import study_refine  # noqa: E402
 from pareto import save_json  # noqa: E402
 
 from ev3dgs import schema  # noqa: E402
-from ev3dgs.geometry import relative_rotation_angle  # noqa: E402
 from ev3dgs.train.config import TrainConfig  # noqa: E402
 
 
@@ -76,7 +74,7 @@ def frozen_refine(pert_scene: str, known: dict, steps: int, lr: float, frame: st
 
     cfg = TrainConfig(scene=pert_scene, iterations=steps, init_points=5000, seed=seed, device="cpu", backend="cpu",
                       checkpoint_every=10 ** 6, densify=False, refine_poses=True, pose_lr=lr, pose_frame=frame,
-                      pose_start=0, pose_warmup=0, pose_gauge="none")
+                      pose_start=0, pose_warmup=0, pose_gauge="none", sh_interval=10 ** 9)
     tr = Trainer(cfg, run, quiet=True)
     tr.model.load_state_dict(known["state"])
     if known["corrections"] is not None:
@@ -89,7 +87,6 @@ def frozen_refine(pert_scene: str, known: dict, steps: int, lr: float, frame: st
             g["lr"] = 0.0
     tr.strategy_state = tr.strategy.initialize_state(len(tr.model), device=tr.device)
     tr.means_lr0 = 0.0  # _set_lr rescales the means' rate from this every step
-    tr.cfg = replace(cfg, sh_interval=10 ** 9)
     before = {k: v.detach().clone() for k, v in tr.model.params.items()}
     for _ in range(steps):
         tr.train_step()
@@ -112,8 +109,8 @@ def scene_geometry(path: str):
 def measure(est_mid, true_mid, K, bounds) -> dict:
     e = study_refine.errors(est_mid, true_mid, K, bounds)
     split = refine_compensation.split_errors(est_mid, true_mid, K, bounds)
-    raw = np.degrees(relative_rotation_angle(est_mid[:, :3, :3], true_mid[:, :3, :3]))
-    return {"rotation_deg_median": e["rotation_deg_median"], "rotation_deg_median_unaligned": float(np.median(raw)),
+    return {"rotation_deg_median": e["rotation_deg_median"],
+            "rotation_deg_median_unaligned": float(np.median(e["rotation_deg_per_view"])),
             "roll_deg_median": float(np.median(split["roll_deg"])),
             "pan_tilt_deg_median": float(np.median(split["pan_tilt_deg"])),
             "reprojection_px_median": e["reprojection_px_median"]}

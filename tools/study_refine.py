@@ -171,10 +171,8 @@ def study_one(args, scene: str, d: Path, seed: int, iterations: int, lrs: list[f
     for lr in lrs:
         for frame in args.pose_frame:
             runs[refine_name(lr, frame)] = replace(base, scene=str(pert), refine_poses=True, pose_lr=lr,
-                                                   pose_frame=frame, **({} if args.pose_start is None else
-                                                                        {"pose_start": args.pose_start}),
-                                                   **({} if args.pose_warmup is None else
-                                                      {"pose_warmup": args.pose_warmup}))
+                                                   pose_frame=frame, pose_start=args.pose_start,
+                                                   pose_warmup=args.pose_warmup)
     results = {}
     for name, cfg in runs.items():
         run_dir = d / "runs" / f"s{seed}" / run_folder(name)
@@ -289,6 +287,8 @@ def main(argv=None) -> int:
                     help="with --keep: evaluate finished runs found there (same settings) instead of training "
                          "them again (default: off)")
     args = ap.parse_args(argv)
+    args.pose_start = TrainConfig.pose_start if args.pose_start is None else args.pose_start
+    args.pose_warmup = TrainConfig.pose_warmup if args.pose_warmup is None else args.pose_warmup
     iterations = args.iterations or (500 if args.quick else 1500)
     lrs = args.pose_lr or ([3e-3] if args.quick else [1e-3, 3e-3])
     W, H = (int(x) for x in args.size.split("x"))
@@ -312,8 +312,7 @@ def main(argv=None) -> int:
         out.update(seeds=args.seeds, summary=summarise(per_seed), per_seed=per_seed)
     out["pose_frames"] = args.pose_frame
     out["densify"] = not args.no_densify
-    out["pose_start"], out["pose_warmup"] = (TrainConfig.pose_start if args.pose_start is None else args.pose_start,
-                                             TrainConfig.pose_warmup if args.pose_warmup is None else args.pose_warmup)
+    out["pose_start"], out["pose_warmup"] = args.pose_start, args.pose_warmup
     out["seconds_total"] = time.perf_counter() - t_all
     out["command"] = "python tools/study_refine.py " + " ".join(argv if argv is not None else sys.argv[1:])
     save_json(args.json, out)
