@@ -9,12 +9,12 @@ export OMP_WAIT_POLICY := PASSIVE
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml setup.py ev3dgs/io/_aedat4_fast.c
+$(STAMP): pyproject.toml setup.py ev3dgs/io/aedat4/_fast.c
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --upgrade pip
 	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
 	$(BIN)/pip install torch==2.13.0
-	$(BIN)/pip install -e '.[dev]'
+	$(BIN)/pip install -e '.[blender,view,docs,dev]'
 	# the reference LPIPS package, for tests/test_lpips.py only; --no-deps: its torchvision would replace our torch
 	$(BIN)/pip install --no-deps lpips==0.1.4
 	touch $(STAMP)
@@ -32,26 +32,26 @@ demo: setup
 	$(BIN)/python -m ev3dgs.demo --out demo_out
 
 bench: setup
-	$(BIN)/python tools/bench_sim.py --json tools/results/bench_sim.json --plot tools/results/bench_sim.png
+	$(BIN)/python tools/bench/bench_sim.py --json tools/results/bench_sim.json --plot tools/results/bench_sim.png
 
 # accuracy against time: reduced studies in well under 15 minutes on 2 cores; `make study` for the full ones
 study-quick: setup
-	$(BIN)/python tools/study_sim.py --quick
-	$(BIN)/python tools/study_render.py --quick
-	$(BIN)/python tools/study_train.py --quick
+	$(BIN)/python tools/studies/study_sim.py --quick
+	$(BIN)/python tools/studies/study_render.py --quick
+	$(BIN)/python tools/studies/study_train.py --quick
 
 study: setup
-	$(BIN)/python tools/study_sim.py
-	$(BIN)/python tools/study_render.py
-	$(BIN)/python tools/study_train.py
+	$(BIN)/python tools/studies/study_sim.py
+	$(BIN)/python tools/studies/study_render.py
+	$(BIN)/python tools/studies/study_train.py
 
 # issue 13: naive / blur-only / blur+event / sharp oracle on the built-in scenes, 3 seeds (~1 h on 2 cores);
 # the quick one is lego, one seed, small size (<= 10 minutes)
 bench-fidelity: setup
-	$(BIN)/python tools/bench_fidelity.py
+	$(BIN)/python tools/bench/bench_fidelity.py
 
 bench-fidelity-quick: setup
-	$(BIN)/python tools/bench_fidelity.py --quick
+	$(BIN)/python tools/bench/bench_fidelity.py --quick
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache

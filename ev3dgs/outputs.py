@@ -25,8 +25,8 @@ from pathlib import Path
 
 from .errors import Ev3dgsError
 
-__all__ = ["OutputError", "os_error_message", "check_output_file", "check_output_dir", "temp_name",
-           "atomic_path", "remove_stale_temps", "H5Sink", "STALE_AGE_S"]
+__all__ = ["OutputError", "os_error_message", "check_output_file", "check_output_dir", "refuse_existing",
+           "temp_name", "atomic_path", "remove_stale_temps", "H5Sink", "STALE_AGE_S"]
 
 STALE_AGE_S = 24 * 3600          # a temporary without a PID in its name is stale after this long
 _TEMP = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<tag>[A-Za-z0-9_]+?)(?P<ext>\.[A-Za-z0-9]+)?$")
@@ -94,17 +94,36 @@ def _check_space(folder: Path, estimated_bytes: int, what: str) -> None:
                           f"{_mb(free)} free", _errno.ENOSPC)
 
 
+def refuse_existing(path: str | os.PathLike, force: bool, option: str = "--out") -> None:
+    """Fail (OutputError, EEXIST) if `path` is an existing file or a non-empty folder and not `force`:
+    no command silently replaces earlier results. An empty folder is not a result."""
+    path = Path(path)
+    if force or not (path.exists() or path.is_symlink()):
+        return
+    if path.is_dir():
+        try:
+            next(path.iterdir())
+        except StopIteration:
+            return
+        except OSError:
+            pass
+        raise OutputError(f"{option} {path} is a folder that is not empty; pass --force to replace its "
+                          "contents", _errno.EEXIST)
+    raise OutputError(f"{option} {path} exists; pass --force to replace it", _errno.EEXIST)
+
+
 def check_output_file(path: str | os.PathLike, estimated_bytes: int = 0, *, make_parents: bool = False,
-                      option: str = "--out") -> Path:
+                      option: str = "--out", force: bool = True) -> Path:
     """Fail now (OutputError) if `path` cannot take a new file of about `estimated_bytes` bytes.
 
-    An existing file is fine (it is replaced atomically); a folder is not. The folder must exist unless
-    make_parents (then its nearest existing ancestor must be a writable folder)."""
+    An existing file is refused unless `force` (then it is replaced atomically); a folder is always refused.
+    The folder must exist unless make_parents (then its nearest existing ancestor must be a writable folder)."""
     path = Path(path)
     if path.is_dir():
         raise OutputError(f"{option} {path} is a folder; give a file name", _errno.EISDIR)
     if path.exists() and not path.is_file():
         raise OutputError(f"{option} {path} exists and is not a regular file", _errno.EEXIST)
+    refuse_existing(path, force, option)
     parent = path.parent
     if not parent.exists():
         if not make_parents:
@@ -117,12 +136,15 @@ def check_output_file(path: str | os.PathLike, estimated_bytes: int = 0, *, make
     return path
 
 
-def check_output_dir(path: str | os.PathLike, estimated_bytes: int = 0, *, option: str = "--out") -> Path:
+def check_output_dir(path: str | os.PathLike, estimated_bytes: int = 0, *, option: str = "--out",
+                     force: bool = True) -> Path:
     """Fail now (OutputError) if `path` cannot be (or become) a writable folder with about `estimated_bytes`
-    bytes free. An existing folder is fine, missing parents are created later by the writer."""
+    bytes free. An existing non-empty folder is refused unless `force`; missing parents are created later by
+    the writer."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{option} {path} exists and is not a folder", _errno.ENOTDIR)
+    refuse_existing(path, force, option)
     base = path if path.exists() else _existing_ancestor(path)
     if not base.is_dir():
         raise OutputError(f"{option}: {base} is not a folder", _errno.ENOTDIR)

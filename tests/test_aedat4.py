@@ -436,7 +436,7 @@ def test_memory_bounded_and_throughput(big_file, capsys, threads):
     # what the reader holds does not grow with the file: per decoding thread a read buffer and a decompression
     # buffer (_SCRATCH0 each, packets here are smaller), and at most 16 reused blocks of unpacked events, each
     # the largest packet's 17 bytes per event rounded up to a power of two; 1 MiB for Python objects
-    from ev3dgs.io.aedat4_packets import _SCRATCH0, BlockPool
+    from ev3dgs.io.aedat4.packets import _SCRATCH0, BlockPool
     block = max(BlockPool.MIN_BLOCK, 1 << (17 * int(pt_elements.max()) - 1).bit_length())
     bound = threads * 2 * _SCRATCH0 + 16 * block + (1 << 20)
     assert peak < bound < 16 * n // 8, f"peak {peak / 2**20:.1f} MB for {16 * n / 2**20:.0f} MB of decoded events"

@@ -1,4 +1,4 @@
-"""ev3dgs.io.aedat4_codec (LZ4 / zstd frames decoded by the C libraries straight into a buffer) against
+"""ev3dgs.io.aedat4.codec (LZ4 / zstd frames decoded by the C libraries straight into a buffer) against
 the lz4 and zstandard packages' own frame decoders (intact and damaged frames), and the reader's
 general path (cramjam) giving the same packets when the native path is unavailable."""
 from __future__ import annotations
@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ev3dgs.events import Events
-from ev3dgs.io import aedat4_codec as C
-from ev3dgs.io import aedat4_packets as P
+from ev3dgs.io.aedat4 import codec as C
+from ev3dgs.io.aedat4 import packets as P
 from ev3dgs.io.aedat4 import Aedat4Reader
 from ev3dgs.io.types import AedatError
 
@@ -164,8 +164,8 @@ def test_file_data_table_vectorised_matches_per_table_reads():
     each FileDataTable entry with the scalar Table API (an independent, per-element path)."""
     import struct as _st
 
-    from ev3dgs.io.aedat4_container import _FTAB_FIELDS
-    from ev3dgs.io.flatbuf import Table, root, table_vector
+    from ev3dgs.io.aedat4.container import _FTAB_FIELDS
+    from ev3dgs.io.aedat4.flatbuf import Table, root, table_vector
 
     with Aedat4Reader(SHARED) as r:
         tp, size = r.table_position, r.file_size

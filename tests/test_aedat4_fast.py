@@ -1,4 +1,4 @@
-"""The C fast path for AEDAT 4.0 events (ev3dgs.io.aedat4_fast) against the general numpy path, which is the
+"""The C fast path for AEDAT 4.0 events (ev3dgs.io.aedat4.fast) against the general numpy path, which is the
 second implementation here: on intact files, on every compression, on packets at chunk and time boundaries,
 and on damaged files (hypothesis byte flips) the events, the warnings and the strict-mode errors must be the
 same. The FileDataTable decoder in C against flatbuf.table_vector, also on damaged tables."""
@@ -15,12 +15,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ev3dgs.events import Events
-from ev3dgs.io import aedat4_fast
+from ev3dgs.io.aedat4 import fast as aedat4_fast
 from ev3dgs.io.aedat4 import Aedat4Reader
-from ev3dgs.io.aedat4_container import _FTAB_FIELDS
-from ev3dgs.io.aedat4_packets import decompress
-from ev3dgs.io.aedat4_writer import write_aedat4
-from ev3dgs.io.flatbuf import FlatbufError, root, table_vector
+from ev3dgs.io.aedat4.container import _FTAB_FIELDS
+from ev3dgs.io.aedat4.packets import decompress
+from ev3dgs.io.aedat4.writer import write_aedat4
+from ev3dgs.io.aedat4.flatbuf import FlatbufError, root, table_vector
 from ev3dgs.io.types import AedatError
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "aedat" / "aestream_davis.aedat4"
@@ -30,7 +30,7 @@ needs_shared = pytest.mark.skipif(not SHARED.exists(), reason="shared DAVIS346 r
 def test_extension_is_built():
     # `pip install` (make setup) compiles it wherever a C compiler exists, as on every machine we test on;
     # without it the readers still work (general path), only slower.
-    assert aedat4_fast._c is not None, "ev3dgs.io._aedat4_fast was not built: run `pip install -e .` again"
+    assert aedat4_fast._c is not None, "ev3dgs.io.aedat4._fast was not built: run `pip install -e .` again"
 
 
 def read(path, fast: bool, strict: bool = False, threads: int = 1, **window):
@@ -127,7 +127,7 @@ def test_equal_times_across_packets(tmp_path):
 
 def _edit_events(path: Path, edit) -> None:
     """Edit the Event structs of an uncompressed file in place: edit(k, structs) for events packet k."""
-    from ev3dgs.io.aedat4_packets import EVENT_DTYPE
+    from ev3dgs.io.aedat4.packets import EVENT_DTYPE
     with Aedat4Reader(path) as r:
         pt = r.packet_table()
     data = bytearray(path.read_bytes())

@@ -1,4 +1,4 @@
-"""AEDAT 4.0 packet decoding (ev3dgs.io.aedat4_packets) and the reader's threads / cheap info: the event
+"""AEDAT 4.0 packet decoding (ev3dgs.io.aedat4.packets) and the reader's threads / cheap info: the event
 unpacking against numpy's structured-dtype reading of the same bytes, decompression into reused buffers against
 the lz4 and zstandard packages, identical results and warnings with 1 and 2 decoding threads (intact and damaged
 files), and info() reading only the header and the FileDataTable unless asked to scan."""
@@ -18,10 +18,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ev3dgs.events import Events
-from ev3dgs.io import aedat4_fast
-from ev3dgs.io import aedat4_packets as P
+from ev3dgs.io.aedat4 import fast as aedat4_fast
+from ev3dgs.io.aedat4 import packets as P
 from ev3dgs.io.aedat4 import Aedat4Reader
-from ev3dgs.io.aedat4_writer import event_packet, write_aedat4
+from ev3dgs.io.aedat4.writer import event_packet, write_aedat4
 from ev3dgs.io.types import AedatError
 
 SHARED = Path("/work/shared/data/aedat/aestream_davis.aedat4")
@@ -217,7 +217,7 @@ def test_inplace_decompression_with_wrong_table_counts(tmp_path, delta):
 @pytest.mark.parametrize("cores, load, want", [(4, 0.2, 4), (4, 2.4, 2), (4, 2.6, 1), (2, 0.4, 2), (2, 0.6, 1),
                                                (2, 9.0, 1), (1, 0.0, 1), (16, 0.0, 4)])
 def test_default_threads_follow_idle_cores(monkeypatch, cores, load, want):
-    import ev3dgs.io.aedat4 as A
+    import ev3dgs.io.aedat4.reader as A
 
     monkeypatch.setattr(A.os, "sched_getaffinity", lambda pid: set(range(cores)), raising=False)
     monkeypatch.setattr(A.os, "getloadavg", lambda: (load, load, load))

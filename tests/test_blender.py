@@ -182,7 +182,7 @@ def test_determinism(R):
 
 def test_denoise_prefilter(R):
     """OIDN's guide prefilter reaches Cycles. Against a 256-spp render without the denoiser, at 4 spp: the
-    accurate prefilter removes much of the noise (tools/study_render.py: 27.3 -> 32.1 dB at 96x72); the fast
+    accurate prefilter removes much of the noise (tools/studies/study_render.py: 27.3 -> 32.1 dB at 96x72); the fast
     one, whose guides stay noisy, little (27.5 dB there): it must differ from both and not be worse than no
     denoiser (2 % slack in RMS error for OIDN's CPU-dependent rounding, far below the noise)."""
     import bpy

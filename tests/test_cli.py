@@ -143,7 +143,7 @@ def test_benchmark_script_writes_json_and_plot(tmp_path):
     import json
 
     root = Path(__file__).resolve().parents[1]
-    r = subprocess.run([sys.executable, str(root / "tools" / "bench_sim.py"), "--repeats", "1",
+    r = subprocess.run([sys.executable, str(root / "tools" / "bench" / "bench_sim.py"), "--repeats", "1",
                         "--json", str(tmp_path / "b.json"), "--plot", str(tmp_path / "b.png")],
                        capture_output=True, text=True, cwd=root)
     assert r.returncode == 0, r.stderr

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ev3dgs.io.aedat2 import Aedat2Reader
-from ev3dgs.io.aedat3 import Aedat3Reader
+from ev3dgs.io.jaer.aedat2 import Aedat2Reader
+from ev3dgs.io.jaer.aedat3 import Aedat3Reader
 from ev3dgs.io.types import AedatError
 
 SHARED = Path(__file__).resolve().parents[2] / "shared/data/aedat/aestream_davis.aedat4"

@@ -400,13 +400,13 @@ def test_render_orbits_the_refined_trajectory(scene, tmp_path, capsys):
 
 @pytest.mark.parametrize("frame", ["world", "camera"])
 def test_rounds_tool_rewrites_a_trajectory_as_the_trainer_applied_it(frame):
-    """tools/refine_rounds.py writes a refined run's poses back into a scene from trajectory.npz's world-axis
+    """tools/investigations/refine_rounds.py writes a refined run's poses back into a scene from trajectory.npz's world-axis
     corrections; at the refiner's own sub-pose times that must give the refiner's poses (a second
     implementation: the refiner builds them in its frame's axes, the tool from the world-axis table)."""
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "investigations"))
     from refine_rounds import corrected_poses
 
     r = _refiner(n=3, b=5, frame=frame)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "investigations"))
 
 
 @pytest.mark.slow
@@ -42,7 +42,7 @@ def test_refinement_reduces_pose_error_and_improves_blur_views(tmp_path):
 
 @pytest.mark.slow
 def test_pose_only_refinement_against_a_frozen_scene(tmp_path):
-    """tools/refine_frozen.py: against a scene trained on the true poses and then frozen, only the cameras
+    """tools/investigations/refine_frozen.py: against a scene trained on the true poses and then frozen, only the cameras
     can move, so the images' disagreement must go down by moving them (the reprojection error of the scene's
     points, the quantity the loss sees), and the Gaussians must come out bit for bit as they went in."""
     import refine_frozen

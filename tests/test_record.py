@@ -10,7 +10,7 @@ import pytest
 
 from ev3dgs.errors import InputError
 from ev3dgs.events import Events
-from ev3dgs.io.aedat4_writer import write_aedat4
+from ev3dgs.io.aedat4.writer import write_aedat4
 from ev3dgs.io.types import FrameData, ImuData, Triggers
 
 dv = pytest.importorskip("dv_processing")

@@ -17,7 +17,7 @@ def test_record_ingest_with_poses_then_train(tmp_path):
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "studies"))
     from record_chain import poses_vs_truth
 
     rec = tmp_path / "lego.aedat4"

@@ -1,4 +1,4 @@
-"""tools/refine_compensation.py: the split of a camera error into its rotation-only and centre-only image
+"""tools/investigations/refine_compensation.py: the split of a camera error into its rotation-only and centre-only image
 displacement and into roll / pan-tilt, against analytic answers on a ring of cameras around the origin."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "investigations"))
 
 from ev3dgs.geometry import intrinsics, look_at, rotvec_to_matrix  # noqa: E402
 

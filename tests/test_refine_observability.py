@@ -1,5 +1,5 @@
-"""tools/refine_observability.py: the ratios and per-size statistics it reports, on hand-made study JSON whose
-answers are known (single-seed and --seeds layouts of tools/study_refine.py)."""
+"""tools/investigations/refine_observability.py: the ratios and per-size statistics it reports, on hand-made study JSON whose
+answers are known (single-seed and --seeds layouts of tools/investigations/study_refine.py)."""
 from __future__ import annotations
 
 import json
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "investigations"))
 
 
 def _study(size, its, seed, rot, rep, cen):

@@ -14,8 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ev3dgs.events import Events
-from ev3dgs.io.aedat2 import Aedat2Reader
-from ev3dgs.io.aedat3 import Aedat3Reader
+from ev3dgs.io.jaer.aedat2 import Aedat2Reader
+from ev3dgs.io.jaer.aedat3 import Aedat3Reader
 from ev3dgs.io.aedat4 import Aedat4Reader
 from ev3dgs.io.types import AedatError
 

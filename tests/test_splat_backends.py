@@ -229,7 +229,7 @@ def test_raster_benchmark_script(tmp_path):
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    r = subprocess.run([sys.executable, str(root / "tools" / "bench_raster.py"), "--quick", "--repeats", "1",
+    r = subprocess.run([sys.executable, str(root / "tools" / "bench" / "bench_raster.py"), "--quick", "--repeats", "1",
                         "--json", str(tmp_path / "r.json"), "--plot", str(tmp_path / "r.png")],
                        capture_output=True, text=True, cwd=root)
     assert r.returncode == 0, r.stderr

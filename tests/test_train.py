@@ -204,7 +204,7 @@ def test_bench_train_scaling_step_and_plot(tmp_path):
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "bench"))
     from bench_train_scaling import plot, step_ms
 
     ms = step_ms(300, 24, 18, threads=1, repeats=1)
@@ -223,7 +223,7 @@ def test_bench_train_speed_worker_fixed_count(scene_path):
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "bench"))
     import math
     from bench_train_speed import worker
 

@@ -28,7 +28,19 @@ def finite_float(text: str) -> float:
 
 
 def parser(prog: str, description: str) -> argparse.ArgumentParser:
-    return _Parser(prog=prog, description=description)
+    """A top-level parser with one-line errors and --version."""
+    from .. import __version__
+
+    p = _Parser(prog=prog, description=description)
+    p.add_argument("--version", action="version", version=f"{prog} {__version__}")
+    return p
+
+
+def add_output_options(p: argparse.ArgumentParser, *, force_help: str = "replace an existing output "
+                       "(default: off, an existing output is refused)") -> None:
+    """--force and --quiet, the same words on every sub-command that writes."""
+    p.add_argument("--force", action="store_true", help=force_help)
+    p.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
 
 
 def subparsers(p: argparse.ArgumentParser):

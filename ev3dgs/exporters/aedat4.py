@@ -1,4 +1,4 @@
-"""Export events and frames as an AEDAT 4.0 file (DV / dv-processing) through ev3dgs.io.aedat4_writer.
+"""Export events and frames as an AEDAT 4.0 file (DV / dv-processing) through ev3dgs.io.aedat4.writer.
 
 recording.aedat4: the events stream (packets of 20000, streamed from the scene file) and the frames stream (the
 blurry training frames as BGR, timestamp = exposure start, with startOfExposure / endOfExposure = the
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.aedat4_writer import COMPRESSION, write_aedat4
+from ..io.aedat4.writer import COMPRESSION, write_aedat4
 from ..event_file import EventFile
 from .common import progress
 from .notes import sensor_lines

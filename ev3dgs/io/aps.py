@@ -1,7 +1,7 @@
 """APS frames from the per-pixel reads of an AEDAT 2.0 (jAER) DAVIS file, global or rolling shutter.
 
 Frame boundaries follow jAER (DavisBaseCamera's extractor, github.com/SensorsINI/jaer): a frame starts at the
-reset read of the chip's first pixel address and ends at the signal read of its last one (ev3dgs.io.jaer.Chip).
+reset read of the chip's first pixel address and ends at the signal read of its last one (ev3dgs.io.jaer.chips.Chip).
 A ROI readout, which never reaches those corners, starts a new frame at a reset read of a pixel already reset in
 the open frame. Pixel = clip(reset - signal, 0, 1023) << 6 (uint16, left-aligned like libcaer frames).
 Times, as jAER reports them: frame_start = first reset read, frame_end = last signal read, exposure_end = first

@@ -33,9 +33,9 @@ def open_recording(path: str | Path, *, strict: bool = False,
 
         return Aedat4Reader(path, strict=strict)
     if fmt == "aedat3.1":
-        from .aedat3 import Aedat3Reader
+        from .jaer.aedat3 import Aedat3Reader
 
         return Aedat3Reader(path, strict=strict, sensor_size=sensor_size)
-    from .aedat2 import Aedat2Reader
+    from .jaer.aedat2 import Aedat2Reader
 
     return Aedat2Reader(path, strict=strict, sensor_size=sensor_size)

@@ -63,7 +63,7 @@ class FrameData:
 @dataclass
 class ImuData:
     t: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    # camera frame (OpenCV: x right, y down, z forward) for both sensors; see ev3dgs.io.jaer.IMU_AXES
+    # camera frame (OpenCV: x right, y down, z forward) for both sensors; see ev3dgs.io.jaer.chips.IMU_AXES
     accel: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))       # g
     gyro: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))        # deg/s
     temperature: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))      # deg C

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import intrinsics, look_at, matrix_to_rotvec
-from ..io.aedat4_writer import write_aedat4
+from ..io.aedat4.writer import write_aedat4
 from ..io.types import FrameData, ImuData
 from ..sensor import LUMINANCE_WEIGHTS
 from .blur import blur_frames

@@ -21,7 +21,7 @@ from ..config import check, from_dict, load_toml
 from ..errors import ConfigError
 from .config import SimConfig
 
-SCENES_DIR = Path(__file__).resolve().parents[2] / "datasets" / "scenes"
+SCENES_DIR = Path(__file__).resolve().parent / "builtin_scenes"  # package data: ships in the wheel
 MAX_SIZE = 8192
 PREFILTERS = ("accurate", "fast", "none")
 
@@ -96,7 +96,7 @@ class SceneSpec:
 
 
 # --quick: small, few samples, and OIDN's fast guide prefilter (at 96x72 the accurate one's two extra filter
-# runs cost ~0.13 s of a 0.18 s frame; tools/study_render.py measures what each costs in PSNR)
+# runs cost ~0.13 s of a 0.18 s frame; tools/studies/study_render.py measures what each costs in PSNR)
 QUICK = dict(width=96, height=72, samples=16, views=4, test_views=2, denoise_prefilter="fast")
 
 

@@ -1,5 +1,5 @@
 """naive vs blur-only vs blur+event on one scene: the comparison `make demo` prints and
-tools/bench_train.py records (PSNR on the sharp test views against training wall time)."""
+tools/bench/bench_train.py records (PSNR on the sharp test views against training wall time)."""
 from __future__ import annotations
 
 import time

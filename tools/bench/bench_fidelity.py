@@ -1,0 +1,353 @@
+"""Table-I-style fidelity benchmark (issue 13): the built-in scenes x {naive, blur-only, blur+event, sharp
+oracle} x seeds, scored E2NeRF/EvaGaussians-style on blur views (each training view's sharp mid-exposure frame,
+rendered at its pose) and novel views (/test), PSNR and SSIM, mean +- std over seeds.
+
+    python tools/bench/bench_fidelity.py            # 4 scenes, 24+8 views at 96x72, 17 sub-frames, 1000 steps, 3 seeds
+    python tools/bench/bench_fidelity.py --quick    # lego, 1 seed, 12+4 views at 96x72, 400 steps (<= 10 min, 2 cores)
+
+Runs go --jobs at a time (default: one per CPU core), each in its own process with one thread (CPU training is
+bitwise the same for any thread count, so the table does not depend on --jobs); they are ordered seed by seed, so
+an interrupted run leaves whole seeds behind. Datasets are made once with make-dataset (Blender) into a cache folder (--cache, default
+tools/results/fidelity_cache; a scene whose file exists is reused) with the dataset seed 0 for every training
+seed, so the seeds measure the trainer's variance. Training runs in-process, one variant after the other
+(TrainConfig defaults apart from iterations, init_points and seed: blur space, event log domain and count
+convention come from the scene file). Writes JSON (every run's metrics.json plus the summary) and a plot
+(PSNR per variant per scene, error bars = std over seeds) into tools/results/, and prints the table.
+Runs are resumable: a run folder with a metrics.json from the same settings and the same trainer code (a hash
+of ev3dgs/train and ev3dgs/splat) is not trained again.
+
+Event-weight sweep (issue 13 item 5): ``--event-weights 1 2 4 8 16`` replaces the blur+event variant by one
+blur+event variant per omega = k / 625 (named ``blur+event@k``), e.g.
+
+    python tools/bench/bench_fidelity.py --quick --scenes lego ficus --seeds 2 --variants blur-only blur+event \
+        --event-weights 1 2 4 8 16 --json tools/results/bench_event_weight.json
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from ev3dgs.sim.dataset import make_dataset  # noqa: E402
+from ev3dgs.sim.scenes import builtin_scenes, load_scene, resolve_render  # noqa: E402
+from ev3dgs.train.config import TrainConfig  # noqa: E402
+from ev3dgs.errors import InputError  # noqa: E402
+from ev3dgs.train.evaluate import evaluate  # noqa: E402
+from ev3dgs.train.jobs import default_jobs, run_parallel  # noqa: E402
+from ev3dgs.train.lpips import load_lpips  # noqa: E402
+from ev3dgs.train.trainer import Trainer  # noqa: E402
+
+VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict(),
+            "oracle": dict(oracle=True)}
+# The full table is sized so that a 2-core CPU finishes it in about an hour (48 runs, two at a time); the
+# issue's example size (128x96, 3000 steps) is ~4x that: --size 128x96 --steps 3000.
+FULL = dict(scenes=None, seeds=3, iterations=1000, render=dict(width=96, height=72, views=24, test_views=8,
+                                                               subframes=17, samples=16))
+QUICK = dict(scenes=["lego"], seeds=1, iterations=400, render=dict(width=96, height=72, views=12, test_views=4,
+                                                                    subframes=17, samples=8))
+VIEWS = ("blur_view", "novel_view")
+
+
+OMEGA_UNIT = 1.0 / 625.0  # --event-weights are in units of the trainer's default omega (Ev3DGS's 1/625)
+
+
+EVAL_ONLY = ("evaluate.py", "metrics.py", "lpips.py")  # scoring code: a change there re-scores, never retrains
+
+
+def code_hash(scoring: bool = False) -> str:
+    """sha256 (first 16 hex) of the trainer's and renderer's sources without the scoring modules (``scoring``:
+    of the scoring modules alone). A cached run made by other training code is trained again; one scored by
+    other scoring code is only evaluated again."""
+    h = hashlib.sha256()
+    for sub in ("ev3dgs/train", "ev3dgs/splat"):
+        for f in sorted((ROOT / sub).rglob("*.py")):
+            if (f.name in EVAL_ONLY) != scoring:
+                continue
+            h.update(str(f.relative_to(ROOT)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def make_variants(names: list[str], event_weights: list[float] | None) -> dict[str, dict]:
+    """{variant name: TrainConfig overrides}; with ``event_weights`` blur+event becomes one variant per weight."""
+    out = {}
+    for n in names:
+        if n == "blur+event" and event_weights:
+            for k in event_weights:
+                out[f"blur+event@{k:g}"] = dict(event_weight=k * OMEGA_UNIT)
+        else:
+            out[n] = VARIANTS[n]
+    return out
+
+
+def build_scene(name: str, render: dict, cache: Path, quiet: bool) -> Path:
+    spec = load_scene(name)
+    r = resolve_render(spec, **render)
+    tag = f"{spec.name}_{r.width}x{r.height}_v{r.views}t{r.test_views}s{r.subframes}p{r.samples}"
+    path = cache / f"{tag}.h5"
+    if not path.exists():
+        t = time.perf_counter()
+        make_dataset(spec, r, path, seed=0, quiet=quiet)
+        print(f"  dataset {tag}: {time.perf_counter() - t:.0f} s", flush=True)
+    return path
+
+
+def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_points: int, out: Path,
+            lpips_weights=None) -> dict:
+    cfg = TrainConfig(scene=str(scene), iterations=iterations, init_points=init_points, seed=seed,
+                      checkpoint_every=max(iterations, 1), threads=1, **overrides)
+    done = out / "metrics.json"
+    code, scoring = code_hash(), code_hash(scoring=True)
+    if done.exists() and (out / "config.json").exists():
+        old = TrainConfig.load(out / "config.json")
+        cached = json.loads(done.read_text())
+        if not old.differences(cfg, ignore=("checkpoint_every", "threads")) and cached.get("code") == code:
+            if cached.get("scoring_code") == scoring and (lpips_weights is None or cached.get("lpips")):
+                return cached
+            # trained by this code, scored by other code or without LPIPS: score again, do not retrain
+            m = evaluate(out, lpips_weights=lpips_weights, write_images=False)
+            m |= {k: cached.get(k) for k in ("train_seconds", "code")} | {"scoring_code": scoring}
+            done.write_text(json.dumps(m, indent=2))
+            return m
+    t = time.perf_counter()
+    Trainer(cfg, out, quiet=True).fit()
+    seconds = time.perf_counter() - t
+    m = evaluate(out, lpips_weights=lpips_weights, write_images=False)
+    m["train_seconds"] = seconds
+    m["code"] = code
+    m["scoring_code"] = scoring
+    done.write_text(json.dumps(m, indent=2))
+    return m
+
+
+def _run_job(job: dict) -> dict:
+    """One run in a pool worker (a fresh process: torch and numba pinned to one thread there)."""
+    import torch
+
+    torch.set_num_threads(1)
+    t = time.perf_counter()
+    m = run_one(Path(job["scene_path"]), job["overrides"], job["seed"], job["iterations"], job["init_points"],
+                Path(job["out"]), job["lpips_weights"])
+    return {"scene": job["scene"], "variant": job["variant"], "seed": job["seed"], "metrics": m,
+            "wall": time.perf_counter() - t}
+
+
+def run_jobs(jobs: list[dict], n_jobs: int, quiet: bool) -> list[dict]:
+    """Run ``jobs`` ``n_jobs`` at a time; results in job order."""
+    def report(r):
+        if not quiet:
+            bv, nv = (r["metrics"].get(v, {}).get("psnr") for v in VIEWS)
+            print(f"  {r['scene']} {r['variant']:14s} seed {r['seed']}: blur view {bv:.2f} dB, "
+                  f"novel view {nv:.2f} dB ({r['wall']:.0f} s)", flush=True)
+        return r
+
+    return run_parallel(_run_job, jobs, n_jobs, report)
+
+
+def summarise(runs: list[dict], variants=VARIANTS) -> dict:
+    """{scene: {variant: {view: {"psnr": [mean, std], "ssim": [mean, std], "seeds": n}}}} plus "average"
+    over scenes (mean of the per-scene means; std = std over seeds of the scene-averaged value)."""
+    table: dict = {}
+    for r in runs:
+        cell = table.setdefault(r["scene"], {}).setdefault(r["variant"], {})
+        for view in VIEWS:
+            if view in r["metrics"]:
+                for k in ("psnr", "ssim", "lpips"):
+                    if k in r["metrics"][view]:
+                        cell.setdefault(view, {}).setdefault(k, {})[r["seed"]] = r["metrics"][view][k]
+    out: dict = {}
+    for scene, variants in table.items():
+        for variant, views in variants.items():
+            for view, ks in views.items():
+                for k, by_seed in ks.items():
+                    v = np.array(list(by_seed.values()))
+                    out.setdefault(scene, {}).setdefault(variant, {}).setdefault(view, {})[k] = \
+                        [float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0]
+                    out[scene][variant][view]["seeds"] = len(v)
+    scenes = list(table)
+    avg: dict = {}
+    for variant in variants:
+        for view in VIEWS:
+            for k in ("psnr", "ssim", "lpips"):
+                per_seed = {}
+                for s in scenes:
+                    for seed, val in table[s].get(variant, {}).get(view, {}).get(k, {}).items():
+                        per_seed.setdefault(seed, []).append(val)
+                full = [np.mean(v) for v in per_seed.values() if len(v) == len(scenes)]
+                if full:
+                    a = np.array(full)
+                    avg.setdefault(variant, {}).setdefault(view, {})[k] = \
+                        [float(a.mean()), float(a.std(ddof=1)) if len(a) > 1 else 0.0]
+    out["average"] = avg
+    return out
+
+
+def targets(avg: dict) -> dict:
+    """The issue-13 targets on the scene average (None where a variant is missing)."""
+    def get(v, view):
+        return avg.get(v, {}).get(view, {}).get("psnr")
+    be, nv, bo, orc = (get(v, "blur_view") for v in ("blur+event", "naive", "blur-only", "oracle"))
+    res = {}
+    if be and nv:
+        res["blur_view: blur+event - naive >= 3 dB"] = round(be[0] - nv[0], 2)
+    if be and bo:
+        diff = be[0] - bo[0]
+        res["blur_view: blur+event - blur-only >= 0.5 dB"] = round(diff, 2)
+        res["  ... and > 2 std over seeds"] = bool(diff > 2 * max(be[1], bo[1]) and be[1] + bo[1] > 0)
+    for view in VIEWS:
+        b, o = get("blur+event", view), get("oracle", view)
+        if b and o:
+            res[f"{view}: oracle - blur+event <= 1 dB"] = round(o[0] - b[0], 2)
+    return res
+
+
+def format_table(summary: dict, variants=VARIANTS) -> str:
+    rows = [f"{'scene':10s} {'variant':14s} {'blur PSNR':>14s} {'blur SSIM':>9s} {'novel PSNR':>14s} {'novel SSIM':>10s}"]
+    names = list(variants)
+    for scene, by_variant in summary.items():
+        for variant in names:
+            c = by_variant.get(variant)
+            if not c:
+                continue
+            cols = []
+            for view in VIEWS:
+                p, s = c.get(view, {}).get("psnr"), c.get(view, {}).get("ssim")
+                cols.append(f"{p[0]:7.2f} ± {p[1]:4.2f}" if p else f"{'-':>14s}")
+                cols.append(f"{s[0]:9.4f}" if s else f"{'-':>9s}")
+            rows.append(f"{scene:10s} {variant:14s} {cols[0]:>14s} {cols[1]:>9s} {cols[2]:>14s} {cols[3]:>10s}")
+    return "\n".join(rows)
+
+
+def plot(summary: dict, png: Path, variants=VARIANTS) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(summary)
+    fig, axes = plt.subplots(1, 2, figsize=(max(6, 2.2 * len(scenes) + 2), 3.4), sharey=False)
+    width = 0.8 / len(variants)
+    for ax, view in zip(axes, VIEWS):
+        for i, variant in enumerate(variants):
+            xs, ys, es = [], [], []
+            for j, s in enumerate(scenes):
+                p = summary[s].get(variant, {}).get(view, {}).get("psnr")
+                if p:
+                    xs.append(j + (i - (len(variants) - 1) / 2) * width)
+                    ys.append(p[0])
+                    es.append(p[1])
+            ax.bar(xs, ys, width, yerr=es, capsize=2, label=variant)
+        ax.set_xticks(range(len(scenes)))
+        ax.set_xticklabels(scenes, fontsize=8)
+        ax.set_title(view.replace("_", " ") + " PSNR (dB)", fontsize=9)
+        lo = min((c.get(view, {}).get("psnr", [99])[0] for s in scenes for c in summary[s].values()), default=0)
+        ax.set_ylim(max(0, lo - 3), None)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="lego, one seed, 96x72, 400 steps (<= 10 minutes on 2 cores; default: off, the full 4-scene table)")
+    ap.add_argument("--scenes", nargs="+", help="built-in scene names (default: all built-in scenes)")
+    ap.add_argument("--seeds", type=int, help="number of training seeds, run as 0..N-1 (default 3; --quick 1)")
+    ap.add_argument("--iterations", "--steps", type=int, help="training steps per run (default 1000; --quick 400)")
+    ap.add_argument("--event-weights", type=float, nargs="+",
+                    help="sweep omega: one blur+event variant per value, in units of 1/625 (e.g. 1 2 4 8 16; "
+                         "default: none, blur+event at the trainer's default omega)")
+    ap.add_argument("--size", metavar="WxH", help="image size in pixels (default 96x72)")
+    ap.add_argument("--views", type=int, help="training views per scene (default 24; --quick 12)")
+    ap.add_argument("--test-views", type=int, help="novel (test) views per scene (default 8; --quick 4)")
+    ap.add_argument("--jobs", type=int, default=default_jobs(),
+                    help="runs at a time, one thread each (default: the CPU cores here, %(default)s)")
+    ap.add_argument("--init-points", type=int, default=5000, help="random initial Gaussians (default %(default)s)")
+    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
+                    help="variants to run (default: all four)")
+    ap.add_argument("--cache", type=Path, default=ROOT / "tools/results/fidelity_cache",
+                    help="datasets and run folders (default %(default)s)")
+    ap.add_argument("--json", type=Path, help="summary JSON (default tools/results/bench_fidelity[_quick].json)")
+    ap.add_argument("--plot", type=Path, help="PSNR bar plot (default tools/results/bench_fidelity[_quick].png)")
+    ap.add_argument("--lpips-weights", type=Path, help="LPIPS v0.1 weights file passed to evaluate (see ev3dgs eval "
+                    "--help; default: none, no LPIPS)")
+    ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
+    a = ap.parse_args(argv)
+    if a.lpips_weights:
+        try:
+            load_lpips(a.lpips_weights)  # a bad file fails now, not after the first training run
+        except InputError as e:
+            ap.error(str(e))
+    preset = dict(QUICK if a.quick else FULL)
+    render = dict(preset["render"])
+    if a.size:
+        try:
+            w, h = (int(v) for v in a.size.lower().split("x"))
+        except ValueError:
+            ap.error(f"--size must be WxH, got {a.size!r}")
+        if w < 8 or h < 8:
+            ap.error("--size must be at least 8x8")
+        render.update(width=w, height=h)
+    for key in ("views", "test_views"):
+        if getattr(a, key) is not None:
+            if getattr(a, key) < 1:
+                ap.error(f"--{key.replace('_', '-')} must be >= 1")
+            render[key] = getattr(a, key)
+    if a.jobs < 1:
+        ap.error("--jobs must be >= 1")
+    preset["render"] = render
+    if a.event_weights and any(not (w >= 0) for w in a.event_weights):
+        ap.error("--event-weights must be >= 0")
+    if a.event_weights and "blur+event" not in a.variants:
+        ap.error("--event-weights needs the blur+event variant")
+    variants = make_variants(a.variants, a.event_weights)
+    scenes = a.scenes or preset["scenes"] or builtin_scenes()
+    seeds = a.seeds or preset["seeds"]
+    iterations = a.iterations or preset["iterations"]
+    suffix = "_quick" if a.quick else ""
+    js = a.json or ROOT / f"tools/results/bench_fidelity{suffix}.json"
+    png = a.plot or ROOT / f"tools/results/bench_fidelity{suffix}.png"
+    a.cache.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    paths = {name: build_scene(name, render, a.cache, a.quiet) for name in scenes}
+    jobs = []
+    for seed in range(seeds):                      # seed-major: an interrupted run leaves whole seeds
+        for name in scenes:
+            for variant, overrides in variants.items():
+                tag = variant.replace("+", "_").replace("@", "_w")
+                jobs.append({"scene": name, "scene_path": str(paths[name]), "variant": variant, "seed": seed,
+                             "overrides": overrides, "iterations": iterations, "init_points": a.init_points,
+                             "lpips_weights": a.lpips_weights and str(a.lpips_weights),
+                             "out": str(a.cache / "runs" / paths[name].stem / f"{tag}_s{seed}")})
+    runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]
+    summary = summarise(runs, variants)
+    result = {"settings": {"quick": a.quick, "scenes": scenes, "seeds": seeds, "iterations": iterations,
+                           "init_points": a.init_points, "render": render, "dataset_seed": 0, "jobs": a.jobs,
+                           "variants": list(variants), "variant_overrides": variants, "code": code_hash()},
+              "summary": summary, "targets": targets(summary["average"]),
+              "blurry_input": {r["scene"]: r["metrics"].get("blurry_input", {}).get("psnr") for r in runs},
+              "runs": [{k: v for k, v in r.items() if k != "metrics"} |
+                       {"metrics": {k: r["metrics"].get(k) for k in (*VIEWS, "blurry_input", "train_seconds")}}
+                       for r in runs],
+              "seconds": time.perf_counter() - t0}
+    js.parent.mkdir(parents=True, exist_ok=True)
+    js.write_text(json.dumps(result, indent=2))
+    plot({k: v for k, v in summary.items() if k != "average"}, png, variants)
+    print(format_table(summary, variants))
+    for k, v in result["targets"].items():
+        print(f"{k}: {v}")
+    print(f"done in {result['seconds']:.0f} s -> {js}, {png}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
