@@ -59,7 +59,12 @@ def _warm_kernels() -> float:
     if _WARM:
         return 0.0
     _WARM = True
+    from ..numba_cache import notify_first_compile
+    from . import kernel
     from .config import Leak, LowPass, Refractory, ShotNoise
+    from .effects import leak, lowpass, shot_noise
+
+    notify_first_compile("sim", [kernel, leak, lowpass, shot_noise], "event simulator kernels", "about 10 s")
 
     t = time.perf_counter()
     every = DVSConfig(refractory=Refractory(), leak=Leak(), shot_noise=ShotNoise(rate_hz=1e6), lowpass=LowPass())

@@ -130,6 +130,17 @@ def _forward(params, boxes, offsets, work, background, width, height, tiles_x, i
                 last[cam, py, px] = stop[p]
 
 
+def announce_compile() -> None:
+    """A one-line notice on stderr before the first process on a machine compiles the CPU kernels."""
+    import sys
+
+    from ..numba_cache import notify_first_compile
+    from . import cpu_backward, cpu_tiles, project_cpu
+
+    notify_first_compile("splat-cpu", [sys.modules[__name__], cpu_tiles, cpu_backward, project_cpu],
+                         "CPU rasterizer kernels", "about a minute on 2 cores")
+
+
 def _parallel(kernel, *args):
     """Run a parallel kernel without letting numba change torch's intra-op thread count (see above)."""
     threads = torch.get_num_threads()

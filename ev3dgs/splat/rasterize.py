@@ -103,8 +103,9 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
 
         image, alpha = rasterize_reference(*args)
     else:
-        from .cpu import rasterize_cpu
+        from .cpu import announce_compile, rasterize_cpu
 
+        announce_compile()
         image, alpha = rasterize_cpu(*args, threads=threads)
     meta = {"means2d": proj.means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
             "width": width, "height": height, "n_cameras": 1}
@@ -114,9 +115,10 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
 def _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, near_plane,
                        far_plane, eps2d, background, render_mode, threads):
     """numba projection + SH for all cameras in one call, then one batched rasterizer call."""
-    from .cpu import rasterize_cpu
+    from .cpu import announce_compile, rasterize_cpu
     from .project_cpu import project_sh_cpu
 
+    announce_compile()
     if threads is not None:  # the projection kernel runs on the same numba thread count as the rasterizer
         import numba
 
