@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: setup test test-slow demo bench study-quick study bench-fidelity bench-fidelity-quick clean
+.PHONY: setup test test-slow demo docs bench study-quick study bench-fidelity bench-fidelity-quick clean
 
 setup: $(STAMP)
 
@@ -27,6 +27,10 @@ test-slow: setup
 	command -v chromium >/dev/null || (apt-get update && apt-get install -y chromium) || echo "no chromium: the browser test will skip"
 	# pytest exits 5 when no test is marked slow: that is not a failure
 	$(BIN)/python -m pytest -q -m slow || [ $$? -eq 5 ]
+
+# the documentation site into site/ (tests/test_docs.py builds it with --strict in `make test`)
+docs: setup
+	$(BIN)/python -m mkdocs build --strict -d site
 
 demo: setup
 	$(BIN)/python -m ev3dgs.demo --out demo_out
@@ -54,4 +58,4 @@ bench-fidelity-quick: setup
 	$(BIN)/python tools/bench/bench_fidelity.py --quick
 
 clean:
-	rm -rf $(VENV) demo_out .pytest_cache
+	rm -rf $(VENV) demo_out site .pytest_cache
