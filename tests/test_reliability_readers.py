@@ -222,4 +222,36 @@ def test_cli_strict(shared, tmp_path, capsys, cmd):
             warnings.simplefilter("ignore")
             code = main([cmd, str(p)])
         out = capsys.readouterr()
-        assert code == 0 and "scanned: False" in out.out and "outside" not in out.out + out.err
+        scanned = ["scanned:", "no"] in [ln.split() for ln in out.out.splitlines()]
+        assert code == 0 and scanned and "outside" not in out.out + out.err
+
+
+@pytest.mark.parametrize("bit", range(20, 31))
+@pytest.mark.parametrize("where", [0, 1, 150, 298, 299])
+def test_aedat2_one_flipped_timestamp_bit_is_an_outlier_not_a_reset(tmp_path, bit, where):
+    """One record's timestamp with one high bit set (a forward spike of 2^bit us, 1 s to 18 min) between two
+    in-order neighbours: that record alone is dropped, the rest of the file is read as it is (no reset split,
+    no bad timestamp kept). Record 0 has no neighbour before it: it is dropped either way. Record 299 is the
+    last one: nothing comes back after it, so it is kept or dropped
+    as the monotonic check decides, but never splits the file."""
+    base = [2_000_000 + 37 * i for i in range(300)]          # 2 s in: a 'reset' back to here would be < 2^24
+    ts = list(base)
+    ts[where] |= 1 << bit
+    if ts[where] == base[where]:
+        pytest.skip("bit already set")
+    got, warns = a2_times(a2_file(tmp_path, ts))
+    if where == 0:      # nothing before it: a first record far ahead of the rest reads as an older clock's
+        assert got == base[1:]
+        return
+    assert not any("timestamp reset" in w for w in warns), warns
+    if where < 299:
+        assert got == base[:where] + base[where + 1:]
+        assert any("outliers" in w for w in warns)
+    else:
+        assert got[:299] == base[:299] and len(got) in (299, 300)
+
+
+def test_aedat2_pause_then_resume_is_not_an_outlier(tmp_path):
+    """A real pause (a 5 s gap forward, the clock going on from there) keeps every record."""
+    ts = [1000 + 10 * i for i in range(50)] + [6_000_000 + 10 * i for i in range(50)]
+    assert a2_times(a2_file(tmp_path, ts), strict=True) == (ts, [])

@@ -207,13 +207,17 @@ class Wrap32:
     noted as ("reset", index, (before, after)) and the count restarts from the new value. A run of at most MAX_RUN
     (4096) records that jumps away (by more than 2^30) and comes back to where it left is an outlier run and is
     dropped (one bad timestamp of 0xFFFFFFFF between 10 and 20 must not shift the rest of the file by 2^32).
-    Other backward jumps are noted and left for the monotonic check of each stream."""
+    A smaller forward jump (over SPIKE_MIN, ~1 s: one flipped bit between 20 and 29) whose run comes back within
+    MAX_RUN records to below half of its height is an outlier run too: the records after it are in order with
+    the ones before it, so the return is not a clock reset. Other backward jumps are noted and left for the
+    monotonic check of each stream."""
 
     JUMP = 1 << 30
     MAX_RUN = 4096
     WRAP_GAP = 60_000_000
     RESET_MAX = 1 << 24                      # ~16.8 s: a reset restarts the clock at 0
     RESET_MIN_DROP = 1000                    # smaller steps back are jitter, not resets
+    SPIKE_MIN = 1 << 20                      # ~1 s forward: checked for a return (a spike) within MAX_RUN
 
     def __init__(self) -> None:
         self.prev: int | None = None         # raw value of the last kept record
@@ -234,13 +238,17 @@ class Wrap32:
         d = np.diff(ext, prepend=start)
         step = np.zeros(n, np.int64)
         resume = k0
-        cand = (np.abs(d[:n]) > self.JUMP) | ((d[:n] < -self.RESET_MIN_DROP) & (ext[:n] < self.RESET_MAX))
+        cand = ((np.abs(d[:n]) > self.JUMP) | (d[:n] > self.SPIKE_MIN)
+                | ((d[:n] < -self.RESET_MIN_DROP) & (ext[:n] < self.RESET_MAX)))
         for j in np.flatnonzero(cand).tolist():
             if j < resume:
                 continue
             a = int(ext[j - 1]) if j else start
             win = ext[j + 1:j + 1 + self.MAX_RUN] - a
-            back = np.flatnonzero((win >= 0) & (win < self.JUMP))
+            # a jump away and back: back to within JUMP of where it left, and for a forward jump below half
+            # its height (a recording that pauses and goes on never comes back below where it jumped to)
+            limit = self.JUMP if d[j] < 0 else min(self.JUMP, int(d[j]) // 2)
+            back = np.flatnonzero((win >= 0) & (win < limit))
             if back.size:                                  # jumps away and comes back: outlier run
                 k = j + 1 + int(back[0])
                 keep[j:min(k, n)] = False

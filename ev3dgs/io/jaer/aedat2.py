@@ -303,7 +303,7 @@ class Aedat2Reader(RecordingReader):
                 if kind == "reset":              # only at the segment's very start (the pass chose the segment)
                     continue
                 at = self.data_start + 8 * (rec0 + j)
-                what = (f"{detail} record(s) whose timestamp jumps by more than 2^30 us and back (outliers)"
+                what = (f"{detail} record(s) whose timestamp jumps away by more than 1 s and back (outliers)"
                         if kind == "outlier" else f"timestamp jumping back by {-detail} us (not a plausible wrap)")
                 if self.strict:
                     raise AedatError(f"{self.path}: byte {at}: {what}")
@@ -366,8 +366,8 @@ class Aedat2Reader(RecordingReader):
         if fb.orphans:
             self._warn(f"{fb.orphans} APS reads outside a frame readout ignored")
         if n_outlier:
-            self._warn(f"byte {first_bad['outlier']}: {n_outlier} records whose timestamps jump by more than "
-                       "2^30 us and back (not a wrap) dropped as outliers")
+            self._warn(f"byte {first_bad['outlier']}: {n_outlier} records whose timestamps jump away by more than "
+                       "1 s and back (neither a wrap nor a reset) dropped as outliers")
         if n_back:
             self._warn(f"byte {first_bad['backward']}: {n_back} timestamp jumps back that are neither plausible "
                        "wraps nor resets (left unwrapped)")
