@@ -1,6 +1,6 @@
 """The scene file (HDF5, schema version 1): dataclasses, atomic `write`, lazy `read`, `validate`.
 
-The layout is the one in ARCHITECTURE.md ("The scene file"). `read` returns the large arrays (events,
+The layout is specified in docs/schema.md. `read` returns the large arrays (events,
 train images and sharp frames, test images) as `LazyArray` objects that open the file on access; the
 events come as a `LazyEvents` (same t/x/y/p attribute names as `Events`, `load()` reads them all).
 Small arrays (K, distortion, exposure, poses, points, imu) are read eagerly as numpy arrays.
@@ -370,16 +370,18 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
 
 
-def validate(source: str | os.PathLike | h5py.File, require_complete: bool = True, warn: bool = True) -> list[str]:
+def validate(source: str | os.PathLike | h5py.File, require_complete: bool = True, warn: bool = True,
+             read_data: bool = False) -> list[str]:
     """Raise SchemaError (message starting with the path inside the file) if the file breaks the schema.
 
     require_complete=False accepts an events-only file (camera width/height, events, sensor attrs).
+    read_data=True reads every dataset in full (a damaged compressed chunk is found now, not by a later reader).
     Returns the warnings (odd but trainable), also issued as SchemaWarning unless warn=False.
     The checks live in schema_validate.py.
     """
     from . import schema_validate  # here, not at the top: schema_validate imports the layout from this module
 
-    return schema_validate.validate(source, require_complete, warn)
+    return schema_validate.validate(source, require_complete, warn, read_data)
 
 
 # ------------------------------------------------------------------------------------------ read

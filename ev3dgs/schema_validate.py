@@ -37,15 +37,17 @@ MAX_COORD = 1e6
 
 
 def validate(source: str | os.PathLike | h5py.File, require_complete: bool = True,
-             warn: bool = True) -> list[str]:
+             warn: bool = True, read_data: bool = False) -> list[str]:
     """Raise SchemaError (message starting with the path inside the file) if the file breaks the schema.
 
     require_complete=False accepts an events-only file (camera width/height, events, sensor attrs).
+    read_data=True also reads every byte of every dataset (the images included, which the checks otherwise
+    leave to the reader that needs them), so a damaged compressed chunk anywhere is found now.
     Returns the warnings (odd but trainable: see SchemaWarning), also issued with warnings.warn unless warn=False.
     """
     if isinstance(source, h5py.Group):
         try:
-            return check_open(source.file, require_complete, warn)
+            return check_open(source.file, require_complete, warn, read_data)
         except (OSError, RuntimeError) as e:
             raise SchemaError(f"{source.file.filename}: cannot read HDF5 data ({e})") from None
         except (KeyError, ValueError, TypeError) as e:
@@ -54,13 +56,15 @@ def validate(source: str | os.PathLike | h5py.File, require_complete: bool = Tru
             raise SchemaError(f"{source.file.filename}: cannot read HDF5 object; the file may be corrupt ({e})") \
                 from None
     with _open(source) as f:
-        return check_open(f, require_complete, warn)
+        return check_open(f, require_complete, warn, read_data)
 
 
-def check_open(f: h5py.File, complete: bool, warn: bool = True) -> list[str]:
+def check_open(f: h5py.File, complete: bool, warn: bool = True, read_data: bool = False) -> list[str]:
     """`validate` on an open file."""
     notes: list[str] = []
     _validate(f, complete, notes)
+    if read_data:
+        _read_every_dataset(f)
     if warn:
         for note in notes:
             warnings.warn(note, SchemaWarning, stacklevel=3)
@@ -68,6 +72,25 @@ def check_open(f: h5py.File, complete: bool, warn: bool = True) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------------ helpers
+
+def _read_every_dataset(f: h5py.File) -> None:
+    """Read each dataset block by block along its first axis: a damaged chunk is an error naming the
+    dataset and the rows, not a failure later in whichever command reads it first."""
+    paths: list[str] = []
+    f.visititems(lambda name, obj: paths.append("/" + name) if isinstance(obj, h5py.Dataset) else None)
+    for path in paths:
+        ds = f[path]
+        if ds.shape == () or ds.size == 0:
+            continue
+        row_bytes = max(1, ds.dtype.itemsize * int(np.prod(ds.shape[1:], dtype=np.int64)))
+        rows = max(1, (64 << 20) // row_bytes)
+        for start in range(0, ds.shape[0], rows):
+            try:
+                ds[start:start + rows]
+            except (OSError, RuntimeError, ValueError) as e:
+                raise SchemaError(f"{path}: rows {start}..{min(start + rows, ds.shape[0]) - 1} cannot be read "
+                                  f"(damaged data? {' '.join(str(e).split())})") from None
+
 
 def _real(obj: h5py.HLObject, key: str, where: str, low: float, strict: bool) -> float:
     if key not in obj.attrs:
@@ -177,6 +200,7 @@ def _validate(f: h5py.File, complete: bool, notes: list[str]) -> None:
         K = _ds(f, "/camera/K", np.float64, (3, 3), {})[()]
         _finite(K, "/camera/K")
         _intrinsics(K)
+        _plausible_camera(K, W, H, notes)
     if complete or "/camera/distortion" in f:
         _finite(_ds(f, "/camera/distortion", np.float64, (5,), {})[()], "/camera/distortion")
 
@@ -208,7 +232,7 @@ def _validate(f: h5py.File, complete: bool, notes: list[str]) -> None:
                               + ("a scene needs at least one training view" if group == "train"
                                  else "leave /test out instead"))
     if "train" in f:
-        exposure = _validate_times(f)
+        exposure = _validate_times(f, notes)
         if "transfer" in f["train"].attrs:
             tf = _str(f["train"].attrs["transfer"])
             if tf not in TRANSFERS:
@@ -226,6 +250,44 @@ def _intrinsics(K: np.ndarray) -> None:
     if K[1, 0] != 0 or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
         raise SchemaError(f"/camera/K: not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]: "
                           f"K[1, 0] = {K[1, 0]!r}, row 2 = {K[2].tolist()}")
+
+
+# What a pinhole camera allows. A field of view over FOV_ERROR_DEG (or under 1/FOV_NARROW of a pixel's worth)
+# is no pinhole: fx = 1e-9 is a unit error, not a lens. Past FOV_WARN_DEG the pinhole model is stretched (a
+# fisheye needs its own model). The principal point of a real lens lies near the image centre (decentering of a
+# few percent); outside the image it is suspicious, more than one image size outside it is an error.
+FOV_ERROR_DEG, FOV_WARN_DEG, FOV_MIN_DEG = 179.0, 160.0, 0.01
+ASPECT_ERROR, ASPECT_WARN = 10.0, 1.2      # fx / fy: square-ish pixels on every sensor we read
+MAX_EXPOSURE_US = 3_600_000_000            # one hour: no frame of a camera is exposed longer
+EXPOSURE_WARN_RATIO = 100.0                # one exposure this many times the median: a unit or clock error?
+EVENT_MARGIN_ERROR_US = 10**12             # events 11.6 days away from every frame: a broken timestamp
+EVENT_MARGIN_WARN_US = 60_000_000          # a minute away from the frames' span (beyond its own length)
+
+
+def _plausible_camera(K: np.ndarray, W: int, H: int, notes: list[str]) -> None:
+    """Focal lengths against the image size (field of view) and the principal point against the image."""
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    fov_x = float(np.degrees(2 * np.arctan2(W / 2, fx)))
+    fov_y = float(np.degrees(2 * np.arctan2(H / 2, fy)))
+    for axis, fov, f_, n in (("x", fov_x, fx, W), ("y", fov_y, fy, H)):
+        if fov > FOV_ERROR_DEG or fov < FOV_MIN_DEG:
+            raise SchemaError(f"/camera/K: f{axis} = {f_:.6g} px gives a {fov:.4g} deg field of view over {n} px; "
+                              f"a pinhole camera needs {FOV_MIN_DEG:g}-{FOV_ERROR_DEG:g} deg (focal length in "
+                              "pixels, not metres?)")
+        if fov > FOV_WARN_DEG:
+            notes.append(f"/camera/K: f{axis} = {f_:.6g} px is a {fov:.0f} deg field of view: beyond what the "
+                         "pinhole model describes well")
+    aspect = fx / fy
+    if not 1 / ASPECT_ERROR <= aspect <= ASPECT_ERROR:
+        raise SchemaError(f"/camera/K: fx / fy = {aspect:.4g}; pixels that far from square are not a camera")
+    if not 1 / ASPECT_WARN <= aspect <= ASPECT_WARN:
+        notes.append(f"/camera/K: fx / fy = {aspect:.4g} (pixels far from square)")
+    for name, c, n in (("cx", cx, W), ("cy", cy, H)):
+        if not -n <= c <= 2 * n:
+            raise SchemaError(f"/camera/K: principal point {name} = {c:.6g} lies more than an image size "
+                              f"({n} px) outside the image")
+        if not 0 <= c <= n:
+            notes.append(f"/camera/K: principal point {name} = {c:.6g} lies outside the image (0-{n} px)")
 
 
 def _rigid(a: np.ndarray, path: str) -> None:
@@ -256,13 +318,25 @@ def _rigid(a: np.ndarray, path: str) -> None:
                           f"{MAX_COORD:g} scene units (a unit or parsing error?)")
 
 
-def _validate_times(f: h5py.File) -> np.ndarray:
+def _validate_times(f: h5py.File, notes: list[str]) -> np.ndarray:
     """Exposure windows and pose times; returns the (N, 2) exposure."""
     exp = f["/train/exposure"][()]
     bad = np.flatnonzero(exp[:, 0] >= exp[:, 1])
     if bad.size:
         i = int(bad[0])
         raise SchemaError(f"/train/exposure: view {i} has start {exp[i, 0]} >= end {exp[i, 1]}")
+    length = exp[:, 1] - exp[:, 0]
+    bad = np.flatnonzero(length > MAX_EXPOSURE_US)
+    if bad.size:
+        i = int(bad[0])
+        raise SchemaError(f"/train/exposure: view {i} is exposed for {length[i] / 1e6:.6g} s "
+                          f"({exp[i, 0]}..{exp[i, 1]} us); no camera frame lasts over an hour")
+    if len(length) > 2:
+        med = float(np.median(length))
+        bad = np.flatnonzero(length > EXPOSURE_WARN_RATIO * med)
+        if bad.size:
+            notes.append(f"/train/exposure: view {int(bad[0])} is exposed for {length[bad[0]]} us, over "
+                         f"{EXPOSURE_WARN_RATIO:g}x the median {med:.0f} us ({bad.size} such views)")
     if "/train/pose_t" in f:
         pt = f["/train/pose_t"][()]
         if pt.shape[1] < 1:
@@ -339,5 +413,17 @@ def _validate_events(f: h5py.File, W: int, H: int, exposure: np.ndarray | None, 
         notes.append("/events: no event lies inside any /train/exposure window; the event loss has nothing to "
                      "use" + (" (the file has no events)" if E == 0 else
                               " (are the event and frame clocks the same?)"))
+    if exposure is not None and E and len(exposure):
+        lo, hi = int(exposure[:, 0].min()), int(exposure[:, 1].max())
+        margin = max(EVENT_MARGIN_WARN_US, hi - lo)
+        for i, side in ((0, "first"), (E - 1, "last")):
+            t = int(ds["t"][i])
+            away = max(lo - t, t - hi, 0)
+            if away > EVENT_MARGIN_ERROR_US:
+                raise SchemaError(f"/events/t: the {side} event (index {i}) at t = {t} us lies {away / 1e6:.6g} s "
+                                  f"outside the frames' time span {lo}..{hi} us (a broken timestamp)")
+            if away > margin and inside:     # with none inside, the warning below says it once
+                notes.append(f"/events/t: the {side} event at t = {t} us lies {away / 1e6:.3g} s outside the "
+                             f"frames' time span {lo}..{hi} us")
     if E > 1 and ds["t"][0] == ds["t"][E - 1]:
         notes.append(f"/events/t: all {E} events have the same time {int(ds['t'][0])} us")

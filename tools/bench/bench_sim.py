@@ -1,6 +1,6 @@
 """Simulator throughput: 17 frames of 346x260 moving texture at 1 and 4 px/frame: clean (no effects),
 v2e's clean and noisy presets matched effect for effect, and every effect on (all-noise), one thread.
-Writes JSON and a PNG; the README quotes a real run.
+Writes JSON and a PNG; docs/benchmarks.md quotes a real run.
 
     python tools/bench/bench_sim.py [--repeats 7] --json tools/results/bench_sim.json --plot tools/results/bench_sim.png
 """

@@ -2,12 +2,12 @@
 the roll coordinate alone.
 
 In camera-frame corrections (``--pose-frame camera``) omega_z is the roll about the view's optical axis, the
-component the images constrain least (README, "Why the rotation error does not halve"). Adam's moments do not
+component the images constrain least (docs/trainer.md, pose refinement). Adam's moments do not
 depend on the learning rate, so scaling one coordinate's update by K after each Adam step is Adam with that
 coordinate's learning rate times K. This study patches ``PoseRefiner.step`` to do exactly that (then projects
 the gauge and clamps again, as every step does) and runs ``study_refine.py`` once per K on one scene, the same
 perturbations and seeds, then ``refine_compensation.py`` for the roll and pan/tilt split. A study-only knob:
-it is not a trainer option, because it does not help (see the README).
+it is not a trainer option, because it does not help (see docs/trainer.md).
 
     python tools/investigations/refine_roll_lr.py --scene lego96.h5 --roll-scale 1 3 10 --seeds 0 1 2 \
         --json tools/results/refine_roll_lr.json

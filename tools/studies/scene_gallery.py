@@ -1,4 +1,4 @@
-"""README pictures: for each built-in scene, one view's sharp frame | blurry frame | events (ON red, OFF
+"""The docs pictures (docs/scenes.png): for each built-in scene, one view's sharp frame | blurry frame | events (ON red, OFF
 blue), from a small real make-dataset run.
 
     python tools/studies/scene_gallery.py --out docs/scenes.png
