@@ -20,7 +20,7 @@ from ev3dgs.io.aedat4 import Aedat4Reader
 from ev3dgs.io.types import AedatError
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_aedat_legacy import A2_HEADER, A3_HEADER, a2_dvs, a3_packet, a3_polarity  # noqa: E402
+from test_aedat_legacy import A2_HEADER, A3_HEADER, a2_dvs, a3_packet, a3_polarity, build_aedat2  # noqa: E402
 
 SHARED = Path("/work/shared/data/aedat/aestream_davis.aedat4")
 needs_shared = pytest.mark.skipif(not SHARED.exists(), reason="shared AEDAT sample not present")
@@ -255,3 +255,42 @@ def test_aedat2_pause_then_resume_is_not_an_outlier(tmp_path):
     """A real pause (a 5 s gap forward, the clock going on from there) keeps every record."""
     ts = [1000 + 10 * i for i in range(50)] + [6_000_000 + 10 * i for i in range(50)]
     assert a2_times(a2_file(tmp_path, ts), strict=True) == (ts, [])
+
+
+# ---------------------------------------------------------------- AEDAT 2.0: header/data boundary shifted
+def _a2_events(p, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with Aedat2Reader(p, **kw) as r:
+            ev = list(r.events())
+            return (np.concatenate([e.t for e in ev]), np.concatenate([e.x for e in ev])), r.warnings
+
+
+@pytest.mark.parametrize("shift", [1, 2, 3, 4, 5, 6, 7, -1, -3, -7])
+def test_aedat2_shifted_boundary_finds_the_record_alignment(tmp_path, shift):
+    """Bytes inserted (shift > 0) or removed (< 0) where the header meets the data: the reader finds where the
+    records really start (a warning; strict: an error) and reads every record that survived, unchanged."""
+    data, _ = build_aedat2(seed=1)
+    head = len(A2_HEADER)
+    (tmp_path / "good.aedat").write_bytes(data)
+    (want_t, want_x), _ = _a2_events(tmp_path / "good.aedat")
+    bad = data[:head] + b"\x5a" * shift + data[head:] if shift > 0 else data[:head] + data[head - shift:]
+    p = tmp_path / "shifted.aedat"
+    p.write_bytes(bad)
+    (t, x), warns = _a2_events(p)
+    assert any("records start" in w for w in warns), warns
+    if shift > 0:
+        assert t.tolist() == want_t.tolist() and x.tolist() == want_x.tolist()
+    else:            # the first record lost bytes: it is gone, every later one is read as it was
+        assert t.tolist() == want_t.tolist()[len(want_t) - len(t):] and len(want_t) - len(t) <= 1
+    assert t.max() < 2**33              # no t = 8.6e9 garbage
+    with pytest.raises(AedatError, match="records start"):
+        _a2_events(p, strict=True)
+
+
+def test_aedat2_data_with_no_plausible_alignment_is_refused(tmp_path):
+    rng = np.random.default_rng(0)
+    p = tmp_path / "noise.aedat"
+    p.write_bytes(A2_HEADER + rng.integers(0, 256, 8 * 5000, dtype=np.uint8).tobytes())
+    with pytest.raises(AedatError, match="no 8-byte record alignment"):
+        _a2_events(p)

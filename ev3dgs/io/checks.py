@@ -183,6 +183,8 @@ class StreamChecks:
             reasons["exposure or readout ending before it starts"] = 1
         if self.last is not None and fr.timestamp < self.last:
             reasons[f"timestamp before the previous frame's ({self.last})"] = 1
+        elif self.last is not None and fr.timestamp == self.last:   # one stream, one frame per instant
+            reasons[f"a second frame at the previous frame's timestamp {self.last} (a duplicated packet?)"] = 1
         bad = any(reasons.values())
         if reasons:
             self._problem(i, int(bad), 1, reasons, "frames")

@@ -137,7 +137,10 @@ class RecordingReader:
             raise AedatError(f"{self.path}: byte 0: not an {label} file ({what})")
 
     def _warn(self, msg: str) -> None:
-        """Record a salvaged problem once, and issue it as a Python warning."""
+        """Record a salvaged problem once, and issue it as a Python warning. With strict=True every repair
+        or guess is an error instead: a strict read returns what the file says, or fails."""
+        if getattr(self, "strict", False):
+            raise AedatError(f"{self.path}: {msg}")
         if msg not in self.warnings:
             self.warnings.append(msg)
             _warnings.warn(f"{self.path}: {msg}", AedatWarning, stacklevel=3)

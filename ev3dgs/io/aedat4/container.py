@@ -101,11 +101,15 @@ def parse_xml(text: str, compression: int, warn) -> dict[int, StreamInfo]:
             info = nd.find("node[@name='info']")
             iattrs = {a.get("key"): (a.text or "") for a in info.findall("attr")} if info is not None else {}
             tid = attrs.get("typeIdentifier", "")
-            dims = [int(v) if v.strip().lstrip("-").isdigit() else 0
-                    for v in (iattrs.get("sizeX", "0"), iattrs.get("sizeY", "0"))]
+            given = [iattrs.get(k) for k in ("sizeX", "sizeY")]
+            dims = [int(v) if v is not None and v.strip().isdigit() else 0 for v in given]
+            if any(v is not None for v in given) and not all(0 < d < 32768 for d in dims):
+                # one damaged key must not give a 346x0 stream: no size, the reader takes it from elsewhere
+                warn(f"byte 18: stream {sid} infoNode size sizeX={given[0]!r} sizeY={given[1]!r} is not a size: "
+                     "taken from the other streams or the data")
+                dims = [0, 0]
             out[sid] = StreamInfo(sid, attrs.get("originalOutputName", f"stream{sid}"), KINDS.get(tid, "other"),
-                                  tid, iattrs.get("source", ""), max(dims[0], 0), max(dims[1], 0),
-                                  COMPRESSIONS[compression])
+                                  tid, iattrs.get("source", ""), dims[0], dims[1], COMPRESSIONS[compression])
     except (ET.ParseError, ValueError, AttributeError) as e:
         warn(f"byte 18: unreadable infoNode XML ({e}): stream types are taken from the packets")
         return {}

@@ -80,6 +80,9 @@ class Aedat4Reader(RecordingReader):
                 self._guess_kind(s)
 
     def _warn(self, msg: str) -> None:
+        """A salvaged problem: a warning; with strict=True (any repair or guess fails) an AedatError."""
+        if self.strict:
+            raise AedatError(f"{self.path}: {msg}")
         self.warnings.append(msg)
         _warnings.warn(f"{self.path}: {msg}", AedatWarning, stacklevel=3)
 
