@@ -26,7 +26,7 @@ from pathlib import Path
 from .errors import Ev3dgsError
 
 __all__ = ["OutputError", "os_error_message", "check_output_file", "check_output_dir", "refuse_existing",
-           "temp_name", "atomic_path", "remove_stale_temps", "H5Sink", "STALE_AGE_S"]
+           "write_image", "temp_name", "atomic_path", "remove_stale_temps", "H5Sink", "STALE_AGE_S"]
 
 STALE_AGE_S = 24 * 3600          # a temporary without a PID in its name is stale after this long
 _TEMP = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<tag>[A-Za-z0-9_]+?)(?P<ext>\.[A-Za-z0-9]+)?$")
@@ -151,6 +151,20 @@ def check_output_dir(path: str | os.PathLike, estimated_bytes: int = 0, *, optio
     _probe(base)
     _check_space(base, estimated_bytes, str(path))
     return path
+
+
+def write_image(path: str | os.PathLike, bgr, what: str = "image") -> None:
+    """Encode a BGR(A) uint8 image by its file extension (OpenCV) and write the bytes with Python's file I/O, so
+    that a full disk or a read-only folder is an OSError naming the file (no libpng message on stderr, no
+    half-written file left silently: the caller writes into a temporary folder or name)."""
+    import cv2
+
+    path = Path(path)
+    ok, data = cv2.imencode(path.suffix or ".png", bgr)
+    if not ok:
+        raise OutputError(f"cannot write {path}: the {what} encoder failed", _errno.EIO)
+    with open(path, "wb") as f:
+        f.write(data.tobytes())
 
 
 def temp_name(path: str | os.PathLike, pid: int | None = None) -> Path:

@@ -274,7 +274,7 @@ def test_resume_before_the_first_checkpoint_restarts_cleanly(scene, tmp_path, ca
 
 def test_a_fresh_run_replaces_the_old_log_and_checkpoint(scene, finished_run, tmp_path, capsys):
     run = _copy(finished_run, tmp_path / "run")
-    assert cli.main(_base(scene, str(run), "--iterations", "2", "--checkpoint-every", "100")) == 0
+    assert cli.main(_base(scene, str(run), "--iterations", "2", "--checkpoint-every", "100", "--force")) == 0
     assert _steps(run) == [1, 2]
     assert torch.load(run / "ckpt.pt", weights_only=True)["step"] == 2
 

@@ -1,9 +1,10 @@
 """ev3dgs: train / eval / render / export / view, and scene-file info / validate."""
 from __future__ import annotations
 
+import argparse
 import sys
 
-from .common import dispatch, finite_float, parser, subparsers
+from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 
 def _need_backend(backend: str) -> None:
@@ -18,10 +19,20 @@ def _need_backend(backend: str) -> None:
 
 
 def _check_train(args) -> None:
-    """Before loading anything: the run folder can take model.pt and checkpoints, and the backend exists."""
-    from ..outputs import check_output_dir, remove_stale_temps
+    """Before loading anything: the run folder can take model.pt and checkpoints, holds no earlier run (unless
+    --resume or --force), and the backend exists."""
+    from ..outputs import OutputError, check_output_dir, remove_stale_temps
+    from ..train.trainer import holds_run
 
+    if args.resume and args.force:
+        raise OutputError("--resume continues the run in --out, --force replaces it: give one")
     _need_backend(args.backend)
+    if not args.resume and not args.force and holds_run(args.out):
+        import errno
+
+        raise OutputError(f"--out {args.out} holds a training run already; pass --resume to continue it or "
+                          "--force to start a new one (its model, checkpoint, log and metrics are removed)",
+                          errno.EEXIST)
     per_gaussian = 4 * (3 + 4 + 3 + 1 + 3 * (args.sh_degree + 1) ** 2)  # float32 parameters
     # ckpt.pt (parameters + 2 Adam moments), its temporary while it replaces the old one, model.pt
     check_output_dir(args.out, 7 * per_gaussian * max(1, args.init_points))
@@ -61,8 +72,10 @@ def _train(args) -> int:
     from ..train.config import TrainConfig, resume_config
     from ..train.trainer import Trainer
 
+    import os
+
     opts = dict(
-        scene=args.scene, iterations=args.iterations, subposes=args.subposes, event_weight=args.event_weight,
+        scene=os.path.abspath(args.scene), iterations=args.iterations, subposes=args.subposes, event_weight=args.event_weight,
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
         learn_thresholds=args.learn_thresholds, sh_degree=args.sh_degree,
@@ -87,61 +100,107 @@ def _train(args) -> int:
     return 0
 
 
+def _say(args, text: str) -> None:
+    """A summary line on stdout, unless --quiet."""
+    if not getattr(args, "quiet", False):
+        print(text)
+
+
 def _eval(args) -> int:
     from ..train.evaluate import evaluate
 
-    m = evaluate(args.run, lpips_weights=args.lpips_weights, device=args.device)
+    if args.lpips and args.lpips_weights:
+        from ..errors import InputError
+
+        raise InputError("give either --lpips NET (standard weights, fetched once) or --lpips-weights FILE")
+    m = evaluate(args.run, lpips_weights=args.lpips or args.lpips_weights, device=args.device, scene=args.scene,
+                 force=args.force)
     for key, label in (("test", "novel views"), ("novel_view_unaligned", "novel views, unaligned"),
                        ("train_sharp", "deblurred training views"),
                        ("blur_view_given_poses", "deblurred, at given poses"),
                        ("blurry_input", "blurry input (baseline)")):
         if key in m:
             lp = f"  LPIPS {m[key]['lpips']:.4f}" if "lpips" in m[key] else ""
-            print(f"{label:26s} PSNR {m[key]['psnr']:6.2f} dB  SSIM {m[key]['ssim']:.4f}{lp}  ({m[key]['n']} views)")
+            _say(args, f"{label:26s} PSNR {m[key]['psnr']:6.2f} dB  SSIM {m[key]['ssim']:.4f}{lp}  "
+                       f"({m[key]['n']} views)")
     lp = m["lpips"]
-    print(f"LPIPS: {m['lpips_reason']}" if lp is None else f"LPIPS v{lp['version']} ({lp['net']}, {lp['weights']})")
-    print(f"-> {args.run}/metrics.json, {args.run}/eval/*.png")
+    _say(args, f"LPIPS: {m['lpips_reason']}" if lp is None else f"LPIPS v{lp['version']} ({lp['net']}, "
+                                                                 f"{lp['weights']})")
+    _say(args, f"-> {args.run}/metrics.json, {args.run}/eval/*.png")
     return 0
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    """argparse type: WxH (e.g. 640x480) -> (W, H)."""
+    import argparse
+    import re
+
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if m is None or int(m[1]) < 1 or int(m[2]) < 1 or max(int(m[1]), int(m[2])) > 16384:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels (1-16384), e.g. 640x480, got {text!r}")
+    return int(m[1]), int(m[2])
+
+
 def _render(args) -> int:
-    import numpy as np
     import torch
 
     from .. import schema
-    from ..train.evaluate import load_run, training_mid_poses
-    from ..train.paths import orbit_path, render_frames, write_frames
-
-    cfg, model = load_run(args.run)
-    sc = schema.read(cfg.scene)
     from ..outputs import check_output_dir, check_output_file
+    from ..train.evaluate import load_run, training_mid_poses
+    from ..train.paths import orbit_path, output_kind, render_frames, scaled_camera, write_frames
 
-    _need_backend(cfg.backend)
-    size = args.frames * sc.camera.width * sc.camera.height  # about 1 byte a pixel as PNG, less as mp4
-    if str(args.out).lower().endswith(".mp4"):
-        check_output_file(args.out, size // 10, make_parents=True)
+    kind = output_kind(args.out)  # an unknown extension is refused before anything is loaded
+    if args.frames < 1:
+        from ..errors import InputError
+
+        raise InputError(f"--frames must be >= 1, got {args.frames}")
+    if not args.fps > 0:
+        from ..errors import InputError
+
+        raise InputError(f"--fps must be > 0, got {args.fps}")
+    if kind == "png":
+        check_output_dir(args.out, force=args.force)
     else:
-        check_output_dir(args.out, size)
+        check_output_file(args.out, make_parents=True, force=args.force)
+    cfg, model = load_run(args.run, scene=args.scene)
+    sc = schema.read(cfg.scene)
+    _need_backend(cfg.backend)
+    W, H = sc.camera.width, sc.camera.height
+    K = sc.camera.K
+    if args.size is not None:
+        K, (W, H) = scaled_camera(K, W, H, *args.size), args.size
+    size = args.frames * W * H  # about 1 byte a pixel as PNG, less as mp4 or GIF
+    if kind == "png":
+        check_output_dir(args.out, size, force=True)
+    else:
+        check_output_file(args.out, size // 10, make_parents=True, force=True)
     mid, source = training_mid_poses(args.run, cfg, sc, given=args.given_poses)
     poses = orbit_path(mid, args.frames)
-    K = torch.as_tensor(sc.camera.K, dtype=model.dtype)
+    K = torch.as_tensor(K, dtype=model.dtype)
     bg = torch.as_tensor(sc.camera.background or (0, 0, 0), dtype=model.dtype)
-    write_frames(render_frames(model, poses, K, sc.camera.width, sc.camera.height, bg, backend=cfg.backend),
-                 args.out, fps=args.fps)
-    print(f"rendered {args.frames} frames on an orbit around {source} -> {args.out}")
+    info: dict = {}
+    n = write_frames(render_frames(model, poses, K, W, H, bg, backend=cfg.backend), args.out, fps=args.fps,
+                     info=info)
+    what = {"png": "PNG frames", "gif": "GIF", "mp4": f"mp4, fourcc {info.get('fourcc')}"}[kind]
+    _say(args, f"rendered {n} frames ({W}x{H}, {what}) on an orbit around {source} -> {args.out}")
     return 0
 
 
 def _export(args) -> int:
+    from ..errors import InputError
+    from ..outputs import check_output_file
     from ..train.evaluate import load_run
     from ..train.export import save_ply
 
-    from ..outputs import check_output_file
-
-    _, model = load_run(args.run)
-    check_output_file(args.ply, 4 * 62 * len(model), make_parents=True, option="--ply")
-    save_ply(model, args.ply)
-    print(f"{len(model)} Gaussians -> {args.ply}")
+    if args.out is None:
+        raise InputError("export: give the output file with --out FILE.ply")
+    if not str(args.out).lower().endswith(".ply"):
+        raise InputError(f"--out {args.out}: export writes a .ply; give a file name ending in .ply")
+    check_output_file(args.out, make_parents=True, force=args.force)
+    _, model = load_run(args.run, find_scene=False)  # the model alone: no scene needed
+    check_output_file(args.out, 4 * 62 * len(model), make_parents=True, force=True)
+    save_ply(model, args.out)
+    _say(args, f"{len(model)} Gaussians -> {args.out}")
     return 0
 
 
@@ -155,9 +214,10 @@ def _info(args) -> int:
 def _validate(args) -> int:
     from .. import schema
 
-    for note in schema.validate(args.file, require_complete=not args.partial, warn=False):
+    for note in schema.validate(args.file, require_complete=not args.partial, warn=False,
+                                read_data=not args.quick):
         print(f"warning: {note}", file=sys.stderr)
-    print(f"{args.file}: valid")
+    _say(args, f"{args.file}: valid")
     return 0
 
 
@@ -167,7 +227,8 @@ def build_parser():
     t = sub.add_parser("train", help="train a 3DGS model on a scene file (blur + event rendering losses)")
     t.add_argument("scene", help="scene file (.h5) with /train/poses")
     t.add_argument("--out", required=True, help="run folder (created if missing; model.pt, ckpt.pt, log.jsonl, "
-                                                "config.json, training.png go there)")
+                                                "config.json, training.png go there); a folder that holds a run "
+                                                "already is refused unless --resume or --force")
     t.add_argument("--iterations", type=int, default=3000, help="optimisation steps (default %(default)s)")
     t.add_argument("--subposes", type=int, default=5, help="renders across each exposure, b+1 (default %(default)s)")
     t.add_argument("--event-weight", type=finite_float, default=1 / 625,
@@ -227,7 +288,7 @@ def build_parser():
                         "(default %(default)s)")
     t.add_argument("--checkpoint-every", type=int, default=500,
                    help="write RUN/ckpt.pt every this many steps (default %(default)s)")
-    t.add_argument("--resume", action="store_true", help="continue from RUN/ckpt.pt")
+    t.add_argument("--resume", action="store_true", help="continue from RUN/ckpt.pt (default: off)")
     t.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
                    help="torch device; auto = cuda when available (default %(default)s)")
     t.add_argument("--backend", choices=("auto", "reference", "cpu", "cuda"), default="auto",
@@ -235,34 +296,57 @@ def build_parser():
                         "auto = cuda for CUDA tensors when gsplat is installed, else cpu (default %(default)s)")
     t.add_argument("--threads", type=int, help="CPU threads for torch (default: torch's choice, all cores)")
     t.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
-    t.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
+    add_output_options(t, force_help="start a new run in a --out folder that holds one: the old run's model.pt, "
+                                     "ckpt.pt, log.jsonl, metrics.json, eval images, trajectory.npz and "
+                                     "training.png are removed, other files kept (default: off, refused)")
     from ..view.command import add_train_options
 
     add_train_options(t)  # --view, --view-every, --view-host, --view-port
     t.set_defaults(func=_train)
     _record_given(t)
-    e = sub.add_parser("eval", help="PSNR/SSIM (LPIPS with --lpips-weights) on sharp novel and deblurred training "
+    e = sub.add_parser("eval", help="PSNR/SSIM (and LPIPS with --lpips) on sharp novel and deblurred training "
                                     "views -> metrics.json")
     e.add_argument("run", help="run folder written by `ev3dgs train`")
+    e.add_argument("--lpips", choices=("alex", "vgg"),
+                   help="also LPIPS v0.1 with this trunk, as the lpips package computes it: the torchvision "
+                        "ImageNet weights are fetched once into torch's hub cache ($TORCH_HOME, checksum "
+                        "verified) and the v0.1 linear weights from the lpips package (or fetched the same way); "
+                        "images must be >= 31 px (alex) or 16 px (vgg) per side (default: none, LPIPS is skipped)")
     e.add_argument("--lpips-weights", metavar="FILE",
-                   help="LPIPS v0.1 weights: one torch file with lpips.LPIPS(net='alex' or 'vgg').state_dict() "
-                        "(recipe: ev3dgs/train/lpips.py); images must be >= 31 px (alex) or 16 px (vgg) per side "
-                        "(default: none, LPIPS is skipped; nothing is downloaded)")
+                   help="LPIPS v0.1 weights from a file instead: one torch file with "
+                        "lpips.LPIPS(net='alex' or 'vgg').state_dict() (default: none)")
     e.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
                    help="torch device; auto = cuda when available (default %(default)s)")
+    e.add_argument("--scene", metavar="FILE",
+                   help="the scene file to evaluate on (default: the one the run records, looked for relative to "
+                        "the run folder, at its absolute path, then by name beside the run folder and its parents)")
+    add_output_options(e, force_help="evaluate a run that has metrics.json already, replacing it and the eval "
+                                     "images (default: off, refused)")
     e.set_defaults(func=_eval)
-    r = sub.add_parser("render", help="render a smooth camera path to a folder of PNGs or an .mp4")
+    r = sub.add_parser("render", help="render a smooth camera path to an .mp4, a .gif or a folder of PNGs")
     r.add_argument("run", help="run folder written by `ev3dgs train`")
-    r.add_argument("--out", required=True, help="a folder for frame_NNNN.png, or a file ending in .mp4")
+    r.add_argument("--out", required=True,
+                   help="FILE.mp4 (H.264 where the installed OpenCV can encode it, else MPEG-4), FILE.gif "
+                        "(animated GIF), or a folder name without an extension for frame_NNNN.png; any other "
+                        "extension is refused")
     r.add_argument("--frames", type=int, default=120, help="frames along the orbit (default %(default)s)")
-    r.add_argument("--fps", type=int, default=30, help="frames per second of an .mp4 (default %(default)s)")
+    r.add_argument("--fps", type=int, default=30, help="frames per second of an .mp4 or .gif (default %(default)s)")
+    r.add_argument("--size", type=parse_size, metavar="WxH",
+                   help="render at this resolution, e.g. 1280x960 (the camera's intrinsics scaled to it; "
+                        "default: the scene's camera size)")
+    r.add_argument("--scene", metavar="FILE",
+                   help="the scene file whose cameras and background are used (default: the one the run records)")
     r.add_argument("--given-poses", action="store_true",
                    help="for a --refine-poses run, build the orbit around the scene's given poses instead of the "
                         "refined trajectory (trajectory.npz) the model was trained in (default: off)")
+    add_output_options(r)
     r.set_defaults(func=_render)
     x = sub.add_parser("export", help="write the standard 3DGS .ply")
     x.add_argument("run", help="run folder written by `ev3dgs train`")
-    x.add_argument("--ply", required=True, help="output .ply (graphdeco 3DGS layout, written atomically)")
+    x.add_argument("--out", metavar="FILE.ply",
+                   help="output .ply (graphdeco 3DGS layout, written atomically; required)")
+    x.add_argument("--ply", dest="out", help=argparse.SUPPRESS)  # the option's earlier name
+    add_output_options(x)
     x.set_defaults(func=_export)
     i = sub.add_parser("info", help="summarise a scene file (.h5)")
     i.add_argument("file", help="scene file (.h5)")
@@ -271,13 +355,17 @@ def build_parser():
     v.add_argument("file", help="scene file (.h5)")
     v.add_argument("--partial", action="store_true",
                    help="accept an events-only file, no /train and no K (default: off, a complete file is required)")
+    v.add_argument("--quick", action="store_true",
+                   help="check the layout, values and events but not every byte of the images (default: off, "
+                        "every dataset is read so that a damaged compressed chunk is found)")
+    v.add_argument("--quiet", action="store_true", help="no summary line; the exit code says (default: off)")
     v.set_defaults(func=_validate)
     from .export_dataset import add_parser as add_export_dataset  # issue 19: ev3dgs export-dataset
 
     add_export_dataset(sub)
     from ..view.command import add_parser as add_view_parser
 
-    add_view_parser(sub)  # `ev3dgs view` (browser viewer, optional extra ev3dgs[view]; --png without it)
+    add_view_parser(sub)  # `ev3dgs view` (browser viewer, optional extra ev3dgs[view]; --out FILE.png without it)
     return p
 
 

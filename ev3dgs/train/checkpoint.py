@@ -12,7 +12,7 @@ import torch
 
 from ..config import from_dict
 from ..errors import ConfigError, InputError
-from .config import TrainConfig, mismatch_error, with_legacy_values
+from .config import RESUMABLE_CHANGES, TrainConfig, mismatch_error, with_legacy_values
 
 REQUIRED_KEYS = ("step", "model", "optimizers", "strategy_state", "strategy_rng", "rng", "view_queue",
                  "thresholds", "threshold_opt")
@@ -73,7 +73,10 @@ def check_compatible(path: Path, payload: dict, cfg: TrainConfig, data) -> None:
             saved = from_dict(TrainConfig, with_legacy_values(payload["config"]))
         except (ConfigError, TypeError) as e:
             raise InputError(f"{path}: the checkpoint's settings are unreadable ({_one_line(e)})") from None
-        diffs += saved.differences(cfg)
+        # a run moved with its scene: the saved path is gone, the scene's fingerprint below identifies it
+        moved = payload.get("scene") is not None and not Path(saved.scene).exists()
+        ignore = RESUMABLE_CHANGES + (("scene",) if moved else ())
+        diffs += saved.differences(cfg, ignore=ignore)
     if payload.get("scene") is not None:
         now = scene_fingerprint(data)
         diffs += [(f"scene {k}", v, now.get(k)) for k, v in payload["scene"].items() if now.get(k) != v]

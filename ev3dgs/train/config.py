@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 from ..config import check, from_dict
@@ -13,6 +13,8 @@ from ..errors import ConfigError
 RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
 # keys added after runs were saved without them, with the value those runs used (not today's default)
 LEGACY_VALUES = {"pose_frame": "world"}
+# keys of config.json that record facts about the run, not settings (TrainConfig.load skips them)
+RECORD_KEYS = ("scene_file",)
 
 
 def with_legacy_values(data: dict) -> dict:
@@ -99,7 +101,15 @@ class TrainConfig:
         return "naive" if self.naive else ("blur+event" if self.uses_events else "blur-only")
 
     def save(self, path: Path) -> None:
-        path.write_text(json.dumps(asdict(self), indent=2))
+        """config.json: the settings, plus ``scene_file`` (run_scene.scene_record: the scene's path relative
+        to the run folder, its absolute path, size and fingerprint), so the run finds its scene from any
+        folder and after being moved."""
+        from .run_scene import scene_record
+
+        path = Path(path)
+        data = asdict(self)
+        data["scene_file"] = scene_record(self.scene, path.parent)
+        path.write_text(json.dumps(data, indent=2))
 
     @staticmethod
     def load(path: Path) -> "TrainConfig":
@@ -113,6 +123,7 @@ class TrainConfig:
             raise ConfigError(f"{path}: the run's config must be a JSON object, got {type(data).__name__}")
         if "scene" not in data:
             raise ConfigError(f"{path}: the run's config has no 'scene'")
+        data = {k: v for k, v in data.items() if k not in RECORD_KEYS}
         try:
             return from_dict(TrainConfig, with_legacy_values(data))
         except ConfigError as e:
@@ -120,13 +131,16 @@ class TrainConfig:
 
     def differences(self, other: "TrainConfig", ignore: tuple[str, ...] = RESUMABLE_CHANGES) -> list[tuple]:
         """(key, self's value, other's value) for every field not in ``ignore`` that differs (scene paths are
-        compared resolved, so a relative and an absolute path to one file are the same scene)."""
+        compared resolved, so a relative and an absolute path to one file are the same scene, and so is a copy
+        or a moved file with the same size, name and creation time: run_scene.same_scene_file)."""
+        from .run_scene import same_scene_file
+
         out = []
         for f in fields(self):
             a, b = getattr(self, f.name), getattr(other, f.name)
             if f.name in ignore or a == b:
                 continue
-            if f.name == "scene" and Path(a).resolve() == Path(b).resolve():
+            if f.name == "scene" and (Path(a).resolve() == Path(b).resolve() or same_scene_file(a, b)):
                 continue
             out.append((f.name, a, b))
         return out
@@ -148,6 +162,15 @@ def resume_config(run_dir, opts: dict, given: set[str]) -> TrainConfig:
     if not saved_path.exists():
         return TrainConfig(**opts)
     saved = TrainConfig.load(saved_path)
+    if "scene" in given and not Path(saved.scene).exists():  # the run and its scene were moved: same file?
+        from .run_scene import resolve_run_scene
+
+        try:
+            moved = resolve_run_scene(run_dir)
+        except Exception:
+            moved = None
+        if moved is not None and Path(moved).resolve() == Path(opts["scene"]).resolve():
+            saved = replace(saved, scene=opts["scene"])
     merged = {**asdict(saved), **{k: v for k, v in opts.items() if k in given}}
     cfg = TrainConfig(**merged)
     if (Path(run_dir) / "ckpt.pt").exists():

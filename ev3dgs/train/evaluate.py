@@ -8,8 +8,9 @@ Evaluation protocol (E2NeRF / EvaGaussians), metrics.json keys:
 * "novel_view": /test views at poses not trained on (all of /test for our simulated scenes; the odd-indexed
   ones, config test_novel_views, for E2NeRF imports).
 * "blurry_input": the blurry training frames against the blur-view ground truth (the baseline).
-Each is {"psnr", "ssim", "n", "psnr_per_view"}, plus "lpips" (mean) and "lpips_per_view" when LPIPS weights are
-given (ev3dgs/train/lpips.py); the top-level "lpips" then names the network ({"net", "version", "weights",
+Each is {"psnr", "ssim", "n", "psnr_per_view"}, plus "lpips" (mean) and "lpips_per_view" when LPIPS is asked for
+(a network name, "alex" or "vgg", whose standard weights are fetched into torch's hub cache, or a weights file:
+ev3dgs/train/lpips.py); the top-level "lpips" then names the network ({"net", "version", "weights",
 "sha256", "min_size"}), else it is null and "lpips_reason" says why.
 "variant" is naive / blur-only / blur+event / oracle (TrainConfig.variant). The old keys "test" and
 "train_sharp" are kept as aliases of all /test views and of the /train/sharp blur views.
@@ -42,11 +43,21 @@ from .metrics import lpips_unavailable_reason, psnr, ssim_metric
 from .trainer import resolve_device
 
 
-def load_run(run_dir: str | Path, device="cpu"):
+def load_run(run_dir: str | Path, device="cpu", scene: str | Path | None = None, find_scene: bool = True):
+    """(TrainConfig, GaussianModel) of a finished run. The config's ``scene`` is the scene file found by
+    run_scene.resolve_scene (``scene``: the --scene override), an absolute path: any working folder works,
+    and so does a run moved together with its scene. ``find_scene=False`` (the model alone is needed, e.g.
+    export): the recorded path is kept as it is and a missing scene is no error."""
+    import dataclasses
+
+    from .run_scene import resolve_run_scene
+
     run = Path(run_dir)
     if not (run / "config.json").is_file() or not (run / "model.pt").is_file():
         raise InputError(f"{run}: not a finished training run (config.json and model.pt expected)")
     cfg = TrainConfig.load(run / "config.json")
+    if find_scene or scene is not None:
+        cfg = dataclasses.replace(cfg, scene=str(resolve_run_scene(run, scene)))
     try:
         payload = torch.load(run / "model.pt", map_location=device, weights_only=False)
     except (OSError, RuntimeError, EOFError) as e:
@@ -110,22 +121,58 @@ def _scores(pred: list, truth, lp=None) -> dict:
     return out
 
 
-def _png(path: Path, *images) -> None:
-    row = np.hstack([np.pad(np.asarray(i), ((1, 1), (1, 1), (0, 0)), constant_values=255) for i in images])
-    ok, data = cv2.imencode(".png", cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
-    from ..outputs import atomic_path
+LABEL_HEIGHT = 14  # px of the caption strip above each panel of the eval images
 
+
+def _labelled(image: np.ndarray, label: str) -> np.ndarray:
+    """`image` (H, W, 3 RGB uint8) with `label` written in a white strip above it (the column is widened, the
+    image centred, when the text is wider than the image)."""
+    font, scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1
+    (tw, th), base = cv2.getTextSize(label, font, scale, thick)
+    img = np.asarray(image, np.uint8)
+    h, w = img.shape[:2]
+    width = max(w, tw + 4)
+    strip = np.full((LABEL_HEIGHT, width, 3), 255, np.uint8)  # drawn apart: no stroke touches the image
+    cv2.putText(strip, label, ((width - tw) // 2, min(LABEL_HEIGHT - base, (LABEL_HEIGHT + th) // 2)), font, scale,
+                (0, 0, 0), thick, cv2.LINE_AA)
+    col = np.full((LABEL_HEIGHT + h, width, 3), 255, np.uint8)
+    col[:LABEL_HEIGHT] = strip
+    x0 = (width - w) // 2
+    col[LABEL_HEIGHT:, x0:x0 + w] = img
+    return col
+
+
+def _png(path: Path, images, labels) -> None:
+    """One PNG of the panels side by side, each captioned with its label."""
+    cols = [_labelled(i, t) for i, t in zip(images, labels)]
+    hmax = max(c.shape[0] for c in cols)
+    cols = [np.pad(c, ((0, hmax - c.shape[0]), (0, 0), (0, 0)), constant_values=255) for c in cols]
+    row = np.hstack([np.pad(c, ((1, 1), (1, 1), (0, 0)), constant_values=255) for c in cols])
+    ok, data = cv2.imencode(".png", cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
+    from ..outputs import OutputError, atomic_path
+
+    if not ok:
+        raise OutputError(f"cannot encode {path}")
     with atomic_path(path) as tmp:  # removes the temporary and names the reason on failure
         tmp.write_bytes(data.tobytes())
 
 
 def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str = "auto",
-             write_images: bool = True) -> dict:
+             write_images: bool = True, scene: str | Path | None = None, force: bool = True) -> dict:
+    """Score the run in `run_dir` (see the module doc) -> RUN/metrics.json and RUN/eval/*.png. `scene`: the
+    scene file instead of the one the run records; without `force` an existing metrics.json is refused
+    (OutputError). The earlier evaluation's images are removed."""
     run = Path(run_dir)
     dev = resolve_device(device)
-    cfg, model = load_run(run, dev)
-    from ..outputs import check_output_dir, remove_stale_temps
+    cfg, model = load_run(run, dev, scene=scene)
+    import errno
 
+    from ..outputs import OutputError, check_output_dir, remove_stale_temps
+    from .trainer import clear_eval_images
+
+    if not force and (run / "metrics.json").exists():
+        raise OutputError(f"{run / 'metrics.json'} exists (the run was evaluated before); pass --force to "
+                          "evaluate again and replace it and the eval images", errno.EEXIST)
     check_output_dir(run, option="run folder")  # writable? before rendering every view
     for folder in (run, run / "eval"):
         remove_stale_temps(folder)
@@ -138,10 +185,11 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
     if lpips_weights is not None:
         lp = load_lpips(lpips_weights, dev)  # a bad file or too small images fail here, before any rendering
         lp.check_size(W, H)
-    metrics = {"run": str(run), "scene": cfg.scene,
+    metrics = {"run": str(run), "scene": cfg.scene,  # the resolved, absolute path
                "variant": cfg.variant, "seed": cfg.seed, "iterations": cfg.iterations,
                "lpips": lp.info if lp else None, "lpips_reason": None if lp else lpips_unavailable_reason(None)}
     out_dir = run / "eval"
+    clear_eval_images(run)  # the images of an earlier evaluation (other views, other model)
     if write_images:
         out_dir.mkdir(exist_ok=True)
     refined_mid = align = None
@@ -169,7 +217,7 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
         else:
             metrics["novel_view"] = metrics["test"]
         for i, (p, t) in enumerate(zip(pred, truth)) if write_images else ():
-            _png(out_dir / f"test_{i:03d}.png", t, p)
+            _png(out_dir / f"test_{i:03d}.png", (t, p), ("ground truth", "rendered"))
     tr = sc.train
     if tr.sharp is not None and tr.sharp_poses is not None:
         pred = render_views(model, np.asarray(tr.sharp_poses), K, W, H, bg, cfg.backend)
@@ -180,7 +228,7 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
         metrics["train_sharp"] = metrics["blur_view"] = _scores(pred, sharp, lp)
         metrics["blurry_input"] = _scores(list(blurry), sharp, lp)
         for i, (b, p, s) in enumerate(zip(blurry, pred, sharp)) if write_images else ():
-            _png(out_dir / f"train_{i:03d}.png", b, p, s)
+            _png(out_dir / f"train_{i:03d}.png", (b, p, s), ("blurry input", "rendered", "ground truth"))
     if "test" not in metrics and "train_sharp" not in metrics:
         raise InputError(f"{cfg.scene}: no sharp ground truth (/test or /train/sharp) to evaluate against")
     from ..outputs import atomic_path

@@ -4,7 +4,9 @@ Poses are 4x4 camera-to-world matrices with OpenCV axes (see ``ev3dgs.geometry``
 """
 from __future__ import annotations
 
+import contextlib
 import os
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -14,7 +16,7 @@ import torch
 from ..errors import InputError
 from ..geometry import look_at
 
-__all__ = ["orbit_path", "scene_target", "render_frames", "write_frames"]
+__all__ = ["orbit_path", "scene_target", "render_frames", "write_frames", "output_kind", "scaled_camera"]
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
 MAX_ELEVATION_DEG = 85.0  # keeps the orbit a real circle and look_at away from its degenerate case
@@ -140,59 +142,220 @@ def _check_frame(frame, i: int, size) -> np.ndarray:
     return np.ascontiguousarray(f[..., ::-1])  # RGB -> BGR for OpenCV
 
 
-def write_frames(frames: Iterable[np.ndarray], out: str | os.PathLike, fps: float = 30) -> int:
-    """Write RGB uint8 frames to ``out``; returns the number written.
+def scaled_camera(K, width: int, height: int, new_width: int, new_height: int) -> np.ndarray:
+    """K (3, 3) for rendering the same view at new_width x new_height: focal lengths and principal point scaled
+    by the ratio of the sizes along each axis, so the image's borders stay where they are (OpenCV pixel
+    centres: u' + 0.5 = s (u + 0.5), see ev3dgs.geometry)."""
+    K = np.asarray(K, np.float64).copy()
+    if new_width < 1 or new_height < 1:
+        raise InputError(f"the size must be at least 1x1, got {new_width}x{new_height}")
+    sx, sy = new_width / float(width), new_height / float(height)
+    K[0, :2] *= sx
+    K[1, :2] *= sy
+    K[0, 2] = sx * (K[0, 2] + 0.5) - 0.5
+    K[1, 2] = sy * (K[1, 2] + 0.5) - 0.5
+    return K
 
-    ``out`` ending in ``.mp4``: an mp4v video, written to a temporary name beside it and renamed at the end
-    (InputError "cannot write mp4 here; give a folder for PNGs" when this OpenCV cannot open the writer).
-    Anything else: a folder (created) of ``frame_0000.png``, ``frame_0001.png``, ...
-    """
+
+FRAME_FORMATS = {".mp4": "mp4", ".gif": "gif", "": "png"}  # extension of --out -> what is written
+MP4_FOURCCS = ("avc1", "H264", "mp4v")  # H.264 where this OpenCV can encode it, else MPEG-4 part 2
+
+
+def output_kind(out: str | os.PathLike) -> str:
+    """"mp4", "gif" or "png" (a folder of frames) from the output's extension; InputError for any other."""
+    suffix = Path(out).suffix.lower()
+    if suffix not in FRAME_FORMATS:
+        raise InputError(f"--out {out}: unknown output type {suffix!r}; give a file ending in .mp4 or .gif, or a "
+                         "folder name without an extension for PNG frames")
+    return FRAME_FORMATS[suffix]
+
+
+@contextmanager
+def _quiet_stderr():
+    """Silence the C-level stderr (OpenCV/FFmpeg print their failed encoder probes there)."""
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _open_mp4(path: Path, fps: float, size) -> tuple:
+    """(cv2.VideoWriter, fourcc) of the first codec in MP4_FOURCCS this OpenCV opens."""
     import cv2
 
-    out = Path(out)
-    if out.suffix.lower() == ".mp4":
-        if not fps > 0:
-            raise InputError(f"fps must be > 0, got {fps}")
-        from ..outputs import remove_stale_temps
+    for code in MP4_FOURCCS:
+        with _quiet_stderr():
+            writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*code), float(fps), (size[1], size[0]))
+            ok = writer.isOpened()
+        if ok:
+            return writer, code
+        writer.release()
+        with contextlib.suppress(OSError):
+            path.unlink()
+    raise InputError(f"cannot write {path.suffix} video: the installed OpenCV has no mp4 encoder ("
+                     f"{', '.join(MP4_FOURCCS)} tried); give a .gif or a folder for PNG frames")
 
-        out.parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_temps(out.parent, out.stem)  # left by a killed render of the same file
-        tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}.mp4")
-        writer, size, n = None, None, 0
+
+def _count_video_frames(path: Path) -> int:
+    import cv2
+
+    with _quiet_stderr():
+        cap = cv2.VideoCapture(str(path))
         try:
-            for i, frame in enumerate(frames):
-                bgr = _check_frame(frame, i, size)
-                if writer is None:
-                    size = bgr.shape[:2]
-                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
-                                             (size[1], size[0]))
-                    if not writer.isOpened():
-                        raise InputError("cannot write mp4 here; give a folder for PNGs")
-                writer.write(bgr)
+            if not cap.isOpened():
+                return -1
+            n = 0
+            while cap.grab():
                 n += 1
-            if writer is None:
-                raise InputError("no frames to write")
-            writer.release()
-            writer = None
-            os.replace(tmp, out)
         finally:
-            if writer is not None:
-                writer.release()
-            try:
-                tmp.unlink()
-            except OSError:  # missing, or a read-only folder: never hide the real error
-                pass
-        return n
-    out.mkdir(parents=True, exist_ok=True)
-    size, n = None, 0
-    for i, frame in enumerate(frames):
-        bgr = _check_frame(frame, i, size)
-        size = bgr.shape[:2]
-        dst = out / f"frame_{i:04d}.png"
-        if not cv2.imwrite(str(dst), bgr):
-            from ..outputs import OutputError, check_output_dir
+            cap.release()
+    return n
 
-            check_output_dir(out, bgr.nbytes)  # says why (read-only, no space) when it can
-            raise OutputError(f"cannot write {dst}")
-        n += 1
+
+def _write_mp4(frames, tmp: Path, fps: float, info: dict) -> int:
+    writer, size, n = None, None, 0
+    try:
+        for i, frame in enumerate(frames):
+            bgr = _check_frame(frame, i, size)
+            if writer is None:
+                size = bgr.shape[:2]
+                writer, info["fourcc"] = _open_mp4(tmp, fps, size)
+            writer.write(bgr)
+            n += 1
+        if writer is None:
+            raise InputError("no frames to write")
+    finally:
+        if writer is not None:
+            writer.release()
+    return n
+
+
+def _gif_frame(rgb: np.ndarray, alt: bool):
+    """A palette image of `rgb` whose palette's last entry repeats the colour of pixel (0, 0); `alt` draws that
+    pixel with the repeated entry: the same picture with other bytes, so Pillow does not merge a frame
+    identical to the one before it (which would leave fewer frames than were rendered)."""
+    from PIL import Image
+
+    im = Image.fromarray(rgb).quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    pal = (list(im.getpalette() or []) + [0] * 768)[:768]
+    i0 = im.getpixel((0, 0))
+    pal[765:768] = pal[3 * i0:3 * i0 + 3]
+    im.putpalette(pal)
+    if alt:
+        im.putpixel((0, 0), 255)
+    return im
+
+
+def _write_gif(frames, tmp: Path, fps: float, info: dict) -> int:
+    try:
+        import PIL.Image  # noqa: F401  (imageio and matplotlib write GIFs through Pillow too)
+    except ImportError:
+        raise InputError("writing a .gif needs Pillow, which is not installed: pip install pillow; or give "
+                         ".mp4 or a folder for PNG frames") from None
+    images, size, prev, alt = [], None, None, False
+    for i, frame in enumerate(frames):
+        f = np.ascontiguousarray(_check_frame(frame, i, size)[..., ::-1])  # back to RGB
+        size = f.shape[:2]
+        alt = (not alt) if prev is not None and np.array_equal(f, prev) else False
+        images.append(_gif_frame(f, alt))
+        prev = f
+    if not images:
+        raise InputError("no frames to write")
+    duration = max(20, int(round(1000.0 / fps / 10.0)) * 10)  # GIF delays are in 1/100 s
+    images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0,
+                   optimize=False)
+    info["fourcc"] = None
+    info["frame_ms"] = duration
+    return len(images)
+
+
+def _count_gif_frames(path: Path) -> int:
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            if im.format != "GIF":
+                return -1
+            n = getattr(im, "n_frames", 1)
+            im.seek(n - 1)
+            im.load()
+            return n
+    except Exception:
+        return -1
+
+
+def write_frames(frames: Iterable[np.ndarray], out: str | os.PathLike, fps: float = 30,
+                 info: dict | None = None) -> int:
+    """Write RGB uint8 frames to ``out``; returns the number written. The kind follows the extension
+    (output_kind): ``.mp4`` an H.264 video where the installed OpenCV can encode it (fourcc avc1, then H264),
+    else MPEG-4 (mp4v); ``.gif`` an animated GIF (Pillow); no extension a folder of ``frame_0000.png``,
+    ``frame_0001.png``, ... Files are written to a temporary name beside ``out``, read back (the frames counted)
+    and only then renamed into place: a broken file never takes the final name (OutputError). A PNG folder
+    that exists already loses its old frame_NNNN.png files (other files are kept). ``info`` (a dict) receives
+    "fourcc", the mp4 codec used."""
+    from ..outputs import OutputError, remove_stale_temps, temp_name
+
+    out = Path(out)
+    kind = output_kind(out)
+    info = {} if info is None else info
+    if not fps > 0:
+        raise InputError(f"fps must be > 0, got {fps}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(out.parent, out.name)  # left by a killed render of the same output
+    if kind == "png":
+        return _write_png_folder(frames, out)
+    tmp = out.with_name(temp_name(out).name + out.suffix)  # the codec is chosen by the extension
+    try:
+        n = (_write_mp4 if kind == "mp4" else _write_gif)(frames, tmp, fps, info)
+        back = (_count_video_frames if kind == "mp4" else _count_gif_frames)(tmp)
+        if back != n:
+            how = "it cannot be read back" if back < 0 else f"{back} of {n} frames read back"
+            codec = f" (fourcc {info['fourcc']})" if info.get("fourcc") else ""
+            raise OutputError(f"the {kind} writer{codec} produced a broken file for {out}: {how}")
+        os.replace(tmp, out)
+    finally:
+        with contextlib.suppress(OSError):  # missing, or a read-only folder: never hide the real error
+            tmp.unlink()
+    return n
+
+
+def _write_png_folder(frames, out: Path) -> int:
+    import shutil
+
+    import cv2
+
+    from ..outputs import OutputError, temp_name, write_image
+
+    tmp = temp_name(out)
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        size, n = None, 0
+        for i, frame in enumerate(frames):
+            bgr = _check_frame(frame, i, size)
+            size = bgr.shape[:2]
+            dst = tmp / f"frame_{i:04d}.png"
+            write_image(dst, bgr, "PNG")  # a full disk is an OSError naming the file
+            n += 1
+        written = sorted(tmp.glob("frame_*.png"))
+        if len(written) != n or any(cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is None for p in written[-1:]):
+            raise OutputError(f"the PNG frames for {out} could not be read back")
+        if out.is_dir():  # --force: replace the old frames, keep anything else
+            for old in out.glob("frame_[0-9][0-9][0-9][0-9].png"):
+                old.unlink()
+            for p in written:
+                os.replace(p, out / p.name)
+        else:
+            os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return n

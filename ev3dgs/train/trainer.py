@@ -69,7 +69,7 @@ def reproducible(enabled: bool = True):
 
 def resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
-        raise Ev3dgsError("--device cuda: CUDA is not available on this machine")
+        raise Ev3dgsError("--device cuda: CUDA is not available (no CUDA device or no CUDA build of torch)")
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     return torch.device(name)
@@ -249,7 +249,7 @@ class Trainer:
             else:
                 raise Ev3dgsError(f"--resume: no checkpoint in {self.run_dir} (no run was started there)")
         else:
-            ckpt.unlink(missing_ok=True)  # the run it belonged to is being replaced
+            clear_run(self.run_dir)  # the run they belonged to is being replaced
         rollback_log(log_path, self.step)
         self.cfg.save(self.run_dir / "config.json")
         from tqdm import tqdm
@@ -292,6 +292,40 @@ class Trainer:
             self.pose_refiner.save(self.run_dir / "trajectory.npz")
         else:  # never leave an older run's trajectory beside this model
             (self.run_dir / "trajectory.npz").unlink(missing_ok=True)
+
+
+# what `ev3dgs train` and `ev3dgs eval` write in a run folder; a fresh run removes them (and nothing else)
+RUN_FILES = ("config.json", "model.pt", "ckpt.pt", "log.jsonl", "metrics.json", "trajectory.npz", "training.png")
+RUN_MARKERS = ("config.json", "model.pt", "ckpt.pt", "metrics.json")  # a folder with one of these holds a run
+
+
+def holds_run(run_dir: str | Path) -> bool:
+    """True when `run_dir` holds (part of) a training run."""
+    return any((Path(run_dir) / name).exists() for name in RUN_MARKERS)
+
+
+def clear_eval_images(run_dir: str | Path) -> None:
+    """Remove RUN/eval's comparison images (test_NNN.png, train_NNN.png) and the folder when left empty."""
+    import re
+
+    folder = Path(run_dir) / "eval"
+    if not folder.is_dir():
+        return
+    for p in folder.iterdir():
+        if re.fullmatch(r"(test|train)_\d+\.png", p.name) and p.is_file():
+            p.unlink()
+    try:
+        folder.rmdir()
+    except OSError:  # not empty: a user's file is kept
+        pass
+
+
+def clear_run(run_dir: str | Path) -> None:
+    """Remove an earlier run's results from `run_dir` (RUN_FILES and the eval images): a fresh run must not sit
+    beside a stale model, metrics or trajectory. Other files are kept."""
+    for name in RUN_FILES:
+        (Path(run_dir) / name).unlink(missing_ok=True)
+    clear_eval_images(run_dir)
 
 
 def rollback_log(log_path: Path, step: int) -> None:

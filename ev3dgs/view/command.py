@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from ..errors import InputError
 
@@ -21,22 +22,32 @@ def port_number(text: str) -> int:
 
 
 def add_parser(sub) -> None:
+    import argparse
+
     v = sub.add_parser("view", help="look at a scene file or a training run in the browser (viser), or as a PNG")
     v.add_argument("path", help="scene file (.h5) or run folder written by `ev3dgs train`")
-    v.add_argument("--png", help="write the content as a static figure to this PNG (contact sheet of frames, "
-                                 "event images and a top view of the trajectories) instead of starting the "
-                                 "viewer (default: none, start the viewer)")
+    v.add_argument("--out", metavar="FILE.png",
+                   help="write the content as a static figure to this PNG (contact sheet of frames, event images "
+                        "and a top view of the trajectories) instead of starting the viewer (default: none, start "
+                        "the viewer)")
+    v.add_argument("--png", dest="out", help=argparse.SUPPRESS)  # the option's earlier name
+    v.add_argument("--scene", metavar="FILE",
+                   help="for a run folder: the scene file to show it with (default: the one the run records, "
+                        "looked for relative to the run folder, at its absolute path, then by name beside it)")
     v.add_argument("--rows", type=int, default=4,
-                   help="training views (rows) in the --png contact sheet, spread over all views "
+                   help="training views (rows) in the --out contact sheet, spread over all views "
                         "(default %(default)s)")
     v.add_argument("--host", default=DEFAULT_HOST,
                    help="address the viewer binds to; 0.0.0.0 makes it reachable from other machines "
-                        "(default %(default)s, this machine only)")
+                        "(default %(default)s, local connections only)")
     v.add_argument("--port", type=port_number, default=DEFAULT_PORT,
                    help="TCP port of the viewer; when taken the next free one is used, 0 = any free port "
                         "(default %(default)s)")
     v.add_argument("--select", type=int, default=0,
                    help="training view selected when the page opens (index, default %(default)s)")
+    from ..cli.common import add_output_options
+
+    add_output_options(v)
     v.set_defaults(func=run)
 
 
@@ -48,7 +59,7 @@ def add_train_options(t) -> None:
     t.add_argument("--view-every", type=int, default=100,
                    help="steps between viewer updates with --view (default %(default)s)")
     t.add_argument("--view-host", default=DEFAULT_HOST,
-                   help="address the --view viewer binds to (default %(default)s, this machine only)")
+                   help="address the --view viewer binds to (default %(default)s, local connections only)")
     t.add_argument("--view-port", type=port_number, default=DEFAULT_PORT,
                    help="TCP port of the --view viewer, the next free one when taken (default %(default)s)")
 
@@ -58,23 +69,31 @@ def run(args) -> int:
 
     if args.rows < 1:
         raise InputError(f"--rows must be >= 1, got {args.rows}")
-    if args.png is None:
+    if args.out is None:
         from .server import require_viser
 
         require_viser()  # before reading anything: the one-line install hint comes first
     else:
         from ..outputs import check_output_file
 
-        check_output_file(args.png, 2 << 20, make_parents=True, option="--png")
-    content = data.load(args.path)
+        if not str(args.out).lower().endswith(".png"):
+            raise InputError(f"--out {args.out}: view writes a PNG figure; give a file name ending in .png")
+        check_output_file(args.out, 2 << 20, make_parents=True, force=args.force)
+    if Path(args.path).is_dir():
+        content = data.load_run_content(args.path, scene=args.scene)
+    elif args.scene is not None:
+        raise InputError("--scene is for a run folder; a scene file is shown as it is")
+    else:
+        content = data.load(args.path)
     scene = content.scene if isinstance(content, data.RunContent) else content
     if scene.n_views and not 0 <= args.select < scene.n_views:
         raise InputError(f"--select {args.select}: the scene has views 0-{scene.n_views - 1}")
-    if args.png is not None:
+    if args.out is not None:
         from .figure import write_png
 
-        write_png(content, args.png, rows=args.rows)
-        print(f"-> {args.png}")
+        write_png(content, args.out, rows=args.rows)
+        if not args.quiet:
+            print(f"-> {args.out}")
         return 0
     from .server import Viewer
 

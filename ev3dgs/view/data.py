@@ -315,21 +315,18 @@ def _refined(run: Path, sc: SceneContent):
     return poses, pose_t
 
 
-def _scene_of_run(run: Path, scene: str) -> Path:
-    """The run's scene file: its config.json path as given, or, when that is relative and not found from
-    here, relative to the run folder or one of its parents (the folder `ev3dgs train` was started in)."""
-    p = Path(scene)
-    if p.exists() or p.is_absolute():
-        return p
-    for base in [run.absolute(), *run.absolute().parents]:
-        if (base / p).exists():
-            return base / p
-    raise InputError(f"{run / 'config.json'}: its scene file {scene} is not found (from here, nor from the run "
-                     "folder or its parents)")
+def _scene_of_run(run: Path, config: dict, override: str | os.PathLike | None = None) -> Path:
+    """The run's scene file (train/run_scene.py): the --scene override, else the path config.json records
+    relative to the run folder, its absolute path, an old run's path as given (from the current folder, the
+    run folder or its parents), the file name beside the run folder or in its parents."""
+    from ..train.run_scene import resolve_scene
+
+    return resolve_scene(run, config, override)
 
 
-def load_run_content(run_dir: str | os.PathLike, device="cpu") -> RunContent:
-    """A run folder's model (model.pt, or the latest ckpt.pt of a run still training) and its scene."""
+def load_run_content(run_dir: str | os.PathLike, device="cpu", scene: str | os.PathLike | None = None) -> RunContent:
+    """A run folder's model (model.pt, or the latest ckpt.pt of a run still training) and its scene (`scene`:
+    the --scene override)."""
     from ..splat.model import GaussianModel
     from ..train.checkpoint import read_checkpoint
 
@@ -343,10 +340,13 @@ def load_run_content(run_dir: str | os.PathLike, device="cpu") -> RunContent:
         config = json.loads((run / "config.json").read_text())
     except (OSError, ValueError) as e:
         raise InputError(f"{run / 'config.json'}: not readable ({e})") from None
+    if not isinstance(config, dict) or not isinstance(config.get("scene"), str):
+        raise InputError(f"{run / 'config.json'}: names no scene file")
+    scene_path = _scene_of_run(run, config, scene)
     if (run / "model.pt").is_file():
         from ..train.evaluate import load_run
 
-        _, model = load_run(run, device)
+        _, model = load_run(run, device, scene=scene_path)
         source = "model.pt"
     elif (run / "ckpt.pt").is_file():
         payload = read_checkpoint(run / "ckpt.pt", device)
@@ -354,10 +354,7 @@ def load_run_content(run_dir: str | os.PathLike, device="cpu") -> RunContent:
         source = f"ckpt.pt (step {payload['step']})"
     else:
         raise InputError(f"{run}: the run has no checkpoint yet (no model.pt or ckpt.pt)")
-    scene_path = config.get("scene") if isinstance(config, dict) else None
-    if not isinstance(scene_path, str):
-        raise InputError(f"{run / 'config.json'}: names no scene file")
-    sc = load_scene(_scene_of_run(run, scene_path))
+    sc = load_scene(scene_path)
     poses, pose_t = _refined(run, sc)
     return RunContent(run, sc, model, source, poses, pose_t, config)
 

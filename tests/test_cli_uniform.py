@@ -1,0 +1,312 @@
+"""One behaviour for every `ev3dgs` command that writes: --out names the output, an existing output is refused
+(exit 2, one line, the old output untouched) unless --force, --quiet prints nothing, the output type follows the
+extension, and outputs are verified before they take their final name."""
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from ev3dgs import schema
+from ev3dgs.cli import main as cli
+from ev3dgs.geometry import intrinsics, look_at
+
+W, H = 32, 24
+FAST = ["--iterations", "5", "--init-points", "500", "--threads", "1", "--sh-degree", "0", "--checkpoint-every", "5"]
+
+
+def make_scene(path) -> str:
+    """4 shaky views (3 sub-frames over 100 ms) and 2 test views of a small Gaussian cloud, with simulated
+    events; drawn with the plain-torch rasterizer."""
+    from ev3dgs.events import Events
+    from ev3dgs.sim import DVSSimulator
+    from ev3dgs.sim.isp import linear_to_srgb, srgb_to_linear
+    from ev3dgs.splat.model import GaussianModel
+    from ev3dgs.splat.rasterize import rasterization
+
+    rng = np.random.default_rng(0)
+    truth = GaussianModel.from_points(rng.uniform(-0.6, 0.6, (150, 3)),
+                                      rng.integers(30, 255, (150, 3)).astype(np.uint8), sh_degree=0,
+                                      init_opacity=0.8)
+    K = intrinsics(W, H, 50)
+    Kt = torch.as_tensor(K, dtype=torch.float32)
+
+    def draw(c2w):
+        vm = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
+        with torch.no_grad():
+            img, _, _ = rasterization(truth.means, truth.quats_normalised, truth.scales, truth.opacities, truth.sh,
+                                      vm, Kt, W, H, sh_degree=0, background=torch.ones(3), backend="reference")
+        return img.clamp(0, 1).numpy()
+
+    views, S = 4, 3
+    imgs, sharp, sharp_poses, poses, pose_t, exposure, parts = [], [], [], [], [], [], []
+    sim = DVSSimulator(H, W)
+    for v in range(views):
+        az = 2 * np.pi * v / views
+        eye = 3.0 * np.array([np.cos(az), np.sin(az), 0.5])
+        t = v * 150_000 + np.linspace(0, 100_000, S).astype(np.int64)
+        drift = rng.normal(0, 0.3, 3)
+        ps = [look_at(eye + drift * (k / (S - 1) - 0.5), [0, 0, 0]) for k in range(S)]
+        frames = np.stack([draw(p) for p in ps])
+        lin = srgb_to_linear(frames)
+        sim.restart()
+        parts.append(sim.feed(lin.astype(np.float32), t))
+        imgs.append((linear_to_srgb(lin.mean(0)) * 255 + 0.5).astype(np.uint8))
+        sharp.append((frames[S // 2] * 255 + 0.5).astype(np.uint8))
+        sharp_poses.append(ps[S // 2])
+        poses.append(np.stack(ps))
+        pose_t.append(t)
+        exposure.append((t[0], t[-1]))
+    test_poses = [look_at(3.0 * np.array([np.cos(a), np.sin(a), 0.4]), [0, 0, 0]) for a in (0.5, 2.5)]
+    sc = schema.Scene(
+        name="tiny", source="test", camera=schema.Camera(W, H, K=K, background=(1.0, 1.0, 1.0)),
+        events=Events.concatenate(parts), sensor=schema.EventSensor(), bounds=np.array([[-0.7] * 3, [0.7] * 3]),
+        train=schema.Train(images=np.stack(imgs), exposure=np.array(exposure), poses=np.stack(poses),
+                           pose_t=np.stack(pose_t), sharp=np.stack(sharp), sharp_poses=np.stack(sharp_poses)),
+        test=schema.Test(images=np.stack([(draw(p) * 255 + 0.5).astype(np.uint8) for p in test_poses]),
+                         poses=np.stack(test_poses)))
+    schema.write(sc, path)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("scene") / "tiny.h5")
+
+
+@pytest.fixture(scope="module")
+def trained(scene, tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "run"
+    assert cli.main(["train", scene, "--out", str(run), *FAST, "--quiet"]) == 0
+    return run
+
+
+@pytest.fixture
+def run(trained, tmp_path):
+    """A fresh copy of the trained run (not evaluated)."""
+    dst = tmp_path / "run"
+    shutil.copytree(trained, dst)
+    return dst
+
+
+def call(argv) -> int:
+    """cli.main's exit code, also for argparse's refusals (SystemExit)."""
+    try:
+        return cli.main(argv)
+    except SystemExit as e:
+        return e.code
+
+
+def one_line_error(capsys) -> str:
+    cap = capsys.readouterr()
+    assert cap.err.startswith("error: ") and cap.err.count("\n") == 1, cap.err
+    return cap.err
+
+
+def snapshot(path):
+    """Bytes of a file, or {name: bytes} of a folder's files."""
+    if path.is_dir():
+        return {p.name: p.read_bytes() for p in sorted(path.iterdir()) if p.is_file()}
+    return path.read_bytes()
+
+
+# command -> (argv without --force/--quiet, the file or folder whose bytes must survive a refusal)
+def _commands(name, scene, run, tmp):
+    return {
+        "train": (["train", scene, "--out", str(tmp / "r"), *FAST], tmp / "r" / "model.pt"),
+        "eval": (["eval", str(run)], run / "metrics.json"),
+        "render-png": (["render", str(run), "--out", str(tmp / "frames"), "--frames", "2"], tmp / "frames"),
+        "render-gif": (["render", str(run), "--out", str(tmp / "orbit.gif"), "--frames", "2"], tmp / "orbit.gif"),
+        "render-mp4": (["render", str(run), "--out", str(tmp / "orbit.mp4"), "--frames", "2"], tmp / "orbit.mp4"),
+        "export": (["export", str(run), "--out", str(tmp / "m.ply")], tmp / "m.ply"),
+        "view": (["view", str(run), "--out", str(tmp / "fig.png"), "--rows", "2"], tmp / "fig.png"),
+    }[name]
+
+
+@pytest.mark.parametrize("name", ["train", "eval", "render-png", "render-gif", "render-mp4", "export", "view"])
+def test_refuses_to_overwrite_without_force(name, scene, run, tmp_path, capsys):
+    argv, target = _commands(name, scene, run, tmp_path)
+    assert cli.main([*argv, "--quiet"]) == 0
+    assert capsys.readouterr().out == ""  # --quiet: no summary
+    assert target.exists()
+    before = snapshot(target)
+    assert cli.main(argv) == 2
+    err = one_line_error(capsys)
+    assert "--force" in err
+    assert snapshot(target) == before  # untouched
+    assert cli.main([*argv, "--force", "--quiet"]) == 0
+    assert capsys.readouterr().out == ""
+    assert target.exists()
+    assert not [p for p in target.parent.iterdir() if ".tmp-" in p.name]  # no temporary left
+    assert cli.main([*argv, "--force"]) == 0
+    assert capsys.readouterr().out.strip() != ""  # without --quiet: a summary
+
+
+def test_version(capsys):
+    from ev3dgs import __version__
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"ev3dgs {__version__}"
+    out = subprocess.run([sys.executable, "-m", "ev3dgs.cli.main", "--version"], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == f"ev3dgs {__version__}"
+
+
+def test_train_force_removes_the_old_runs_files(scene, run, capsys):
+    assert cli.main(["eval", str(run), "--quiet"]) == 0
+    assert (run / "metrics.json").is_file() and list((run / "eval").glob("*.png"))
+    (run / "notes.txt").write_text("mine")
+    (run / "trajectory.npz").write_bytes(b"stale")
+    assert cli.main(["train", scene, "--out", str(run), *FAST, "--quiet"]) == 2
+    assert "--resume" in one_line_error(capsys)
+    assert cli.main(["train", scene, "--out", str(run), *FAST, "--resume", "--force"]) == 2
+    one_line_error(capsys)
+    assert (run / "metrics.json").is_file()
+    assert cli.main(["train", scene, "--out", str(run), *FAST, "--force", "--quiet"]) == 0
+    assert not (run / "metrics.json").exists() and not (run / "eval").exists()
+    assert not (run / "trajectory.npz").exists()
+    assert (run / "notes.txt").read_text() == "mine"  # not the run's: kept
+    assert {"config.json", "model.pt", "ckpt.pt", "log.jsonl"} <= {p.name for p in run.iterdir()}
+    assert len((run / "log.jsonl").read_text().splitlines()) == 5  # a fresh log, not appended to
+
+
+def test_resume_still_works_on_a_run_folder(scene, run, capsys):
+    assert cli.main(["train", scene, "--out", str(run), *FAST[2:], "--iterations", "7", "--resume", "--quiet"]) == 0
+    assert json.loads((run / "config.json").read_text())["iterations"] == 7
+    assert len((run / "log.jsonl").read_text().splitlines()) == 7
+
+
+def _video_frames(path):
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        frames.append(img)
+    cap.release()
+    return frames
+
+
+def test_render_gif_and_mp4_read_back(run, tmp_path, capsys):
+    from PIL import Image
+
+    assert cli.main(["render", str(run), "--out", str(tmp_path / "o.gif"), "--frames", "4", "--size", "40x30"]) == 0
+    assert "GIF" in capsys.readouterr().out
+    with Image.open(tmp_path / "o.gif") as im:
+        assert im.format == "GIF" and im.n_frames == 4 and im.size == (40, 30)
+    assert cli.main(["render", str(run), "--out", str(tmp_path / "o.mp4"), "--frames", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "fourcc" in out and any(c in out for c in ("avc1", "H264", "mp4v"))
+    frames = _video_frames(tmp_path / "o.mp4")
+    assert len(frames) == 5 and frames[0].shape == (H, W, 3)
+    assert cli.main(["render", str(run), "--out", str(tmp_path / "f"), "--frames", "3", "--size", "16x12"]) == 0
+    import cv2
+
+    files = sorted((tmp_path / "f").iterdir())
+    assert [p.name for p in files] == [f"frame_{i:04d}.png" for i in range(3)]
+    assert cv2.imread(str(files[0])).shape == (12, 16, 3)
+
+
+def test_gif_keeps_identical_frames():
+    """Pillow merges a frame equal to the one before: the writer keeps every frame, exact colours."""
+    from PIL import Image
+
+    from ev3dgs.train.paths import write_frames
+
+    frames = [np.full((8, 10, 3), v, np.uint8) for v in (10, 10, 10, 200, 200)]
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "same.gif"
+        assert write_frames(frames, out, fps=10) == 5
+        with Image.open(out) as im:
+            assert im.n_frames == 5
+            for i in range(5):
+                im.seek(i)
+                assert np.array_equal(np.asarray(im.convert("RGB")), frames[i])
+
+
+def test_broken_writer_output_never_takes_the_final_name(run, tmp_path, monkeypatch, capsys):
+    import ev3dgs.train.paths as paths
+
+    monkeypatch.setattr(paths, "_count_video_frames", lambda path: 1)  # as if the file held fewer frames
+    out = tmp_path / "o.mp4"
+    assert cli.main(["render", str(run), "--out", str(out), "--frames", "3"]) == 2
+    assert "broken" in one_line_error(capsys)
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["render", "RUN", "--out", "TMP/frames.jpgz"], "unknown output type"),
+    (["render", "RUN", "--out", "TMP/o.avi"], "unknown output type"),
+    (["render", "RUN", "--out", "TMP/o", "--size", "40by30"], "WIDTHxHEIGHT"),
+    (["export", "RUN", "--out", "TMP/m.txt"], r"\.ply"),
+    (["export", "RUN"], "--out"),
+    (["view", "RUN", "--out", "TMP/fig.jpg"], r"\.png"),
+])
+def test_bad_output_names_are_refused(run, tmp_path, capsys, argv, match):
+    import re
+
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert call([a.replace("RUN", str(run)).replace("TMP", str(tmp_path)) for a in argv]) == 2
+    assert re.search(match, one_line_error(capsys))
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_old_option_names_still_work(run, tmp_path, capsys):
+    from ev3dgs.cli.main import build_parser
+
+    assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply"), "--quiet"]) == 0
+    assert (tmp_path / "m.ply").is_file()
+    assert cli.main(["view", str(run), "--png", str(tmp_path / "f.png"), "--quiet"]) == 0
+    assert (tmp_path / "f.png").is_file()
+    sub = build_parser()._subparsers._group_actions[0].choices
+    assert "--ply" not in sub["export"].format_help() and "--png" not in sub["view"].format_help()
+    for name in ("train", "eval", "render", "export", "view"):
+        text = sub[name].format_help()
+        assert "--force" in text and "--quiet" in text, name
+
+
+def test_eval_images_are_labelled(run, capsys):
+    import cv2
+
+    from ev3dgs.train.evaluate import LABEL_HEIGHT
+
+    assert cli.main(["eval", str(run), "--quiet"]) == 0
+    img = cv2.imread(str(run / "eval" / "train_000.png"))
+    assert img.shape[0] == H + LABEL_HEIGHT + 2
+    strip = img[1:LABEL_HEIGHT + 1]
+    assert strip.min() < 100  # dark text in the caption strip
+    assert len(list((run / "eval").glob("test_*.png"))) == 2
+
+
+def test_eval_lpips_without_network_is_one_line_naming_the_file(run, tmp_path, monkeypatch, capsys):
+    """`eval --lpips alex` fetches the standard weights; with no network the user learns in one line which
+    file to place where, and no metrics.json is written."""
+    import socket
+    import urllib.error
+
+    import torch
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setattr(torch.hub, "_hub_dir", None)
+
+    def no_network(url, dst, *a, **k):
+        raise urllib.error.URLError(socket.gaierror(-3, "Temporary failure in name resolution"))
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", no_network)
+    (run / "metrics.json").unlink(missing_ok=True)
+    assert call(["eval", str(run), "--lpips", "alex"]) == 2
+    err = one_line_error(capsys)
+    assert "alexnet-owt-7be5be79.pth" in err and str(tmp_path / "torch" / "hub" / "checkpoints") in err
+    assert not (run / "metrics.json").exists()
+    assert call(["eval", str(run), "--lpips", "alex", "--lpips-weights", "w.pth"]) == 2
+    assert "either --lpips" in one_line_error(capsys)
