@@ -75,7 +75,7 @@ def test_bad_inputs_exit_2_with_one_line_and_keep_existing_output(tmp_path, caps
     out = tmp_path / "out.h5"
     out.write_bytes(b"precious")
     for name in bad_inputs(tmp_path):
-        code = sim_cli.main(["events", str(tmp_path / f"{name}.npz"), "--out", str(out)])
+        code = sim_cli.main(["events", str(tmp_path / f"{name}.npz"), "--out", str(out), "--force"])
         err = capsys.readouterr().err
         assert code == 2, name
         assert err.startswith("error: ") and err.count("\n") == 1, (name, err)

@@ -202,7 +202,7 @@ def test_read_only_outputs(npz, ro_dir, capsys):
         (ev3dgs_cli, ["train", "x.h5", "--out", str(ro_dir / "run")]),
         (ev3dgs_cli, ["train", "x.h5", "--out", str(ro_dir)]),
         (sim_cli, ["events", str(npz), "--out", str(ro_dir / "ev.h5")]),
-        (sim_cli, ["events", str(npz), "--out", str(ro_dir / "existing.h5")]),
+        (sim_cli, ["events", str(npz), "--out", str(ro_dir / "existing.h5"), "--force"]),
         (sim_cli, ["make-dataset", "--scene", "lego", "--quick", "--out", str(ro_dir / "lego.h5")]),
     ]
     if SHARED.exists():

@@ -18,6 +18,7 @@ def _run(args) -> int:
 
 def add_parser(sub) -> None:
     from ..exporters import FORMATS
+    from .common import add_output_options
     from ..exporters.aedat4 import COMPRESSION
 
     x = sub.add_parser("export-dataset", help="write a scene file in the layouts other methods and tools read "
@@ -28,8 +29,8 @@ def add_parser(sub) -> None:
                         "aedat4: DV recording; transforms: nerfstudio / NeRF transforms.json (no default)")
     x.add_argument("--out", required=True, help="output folder, built under a temporary sibling name and renamed "
                                                 "when complete (no default)")
-    x.add_argument("--force", action="store_true",
-                   help="replace a non-empty --out folder (default: off, a non-empty folder is an error)")
+    add_output_options(x, force_help="replace a non-empty --out folder (default: off, a non-empty folder is "
+                                     "refused)")
     x.add_argument("--layout", choices=("auto", "synthetic", "llff"), default="auto",
                    help="e2nerf only: synthetic (Blender json + train/test PNGs) or llff (real-world: images/ + "
                         "poses_bounds.npy); auto = llff for DAVIS recordings, else synthetic (default %(default)s)")
@@ -41,5 +42,4 @@ def add_parser(sub) -> None:
                         "scenes) or both (default %(default)s)")
     x.add_argument("--compression", choices=sorted(COMPRESSION), default="lz4",
                    help="aedat4 only: packet compression (default %(default)s)")
-    x.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
     x.set_defaults(func=_run)

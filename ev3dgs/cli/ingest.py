@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from .common import dispatch, finite_float, parser, subparsers
+from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 
 def _input_file(path: str) -> None:
@@ -18,12 +18,12 @@ def _input_file(path: str) -> None:
         raise InputError(f"{p}: is a folder, not a file")
 
 
-def _output_file(out: str, estimated_bytes: int) -> None:
+def _output_file(out: str, estimated_bytes: int, force: bool) -> None:
     from pathlib import Path
 
     from ..outputs import check_output_file, remove_stale_temps
 
-    check_output_file(out, estimated_bytes, make_parents=True)
+    check_output_file(out, estimated_bytes, make_parents=True, force=force)
     if Path(out).parent.is_dir():
         remove_stale_temps(Path(out).parent, Path(out).name)
 
@@ -42,10 +42,12 @@ def _sensor_size(text: str) -> tuple[int, int]:
 
 
 def _info(args) -> int:
+    import json
     import warnings
     from pathlib import Path
 
     from ..io.recording import MAGIC
+    from .info import jsonable, recording_text, scene_summary
 
     _input_file(args.file)
     with open(args.file, "rb") as f:
@@ -56,19 +58,41 @@ def _info(args) -> int:
         with warnings.catch_warnings():     # the reader lists its warnings; print each once, below
             warnings.simplefilter("ignore")
             with open_recording(args.file, strict=args.strict, sensor_size=args.sensor_size) as reader:
-                # AEDAT 4 info reads only the header and packet table unless asked to decode and check
+                # AEDAT 4 info reads only the header and the packet table unless asked to decode and check
                 info = reader.info(scan=args.scan or args.strict) if reader.format == "aedat4" else reader.info()
-        print(f"{args.file}: {reader.format}")
-        for key, value in (info.items() if isinstance(info, dict) else vars(info).items()):
-            if key != "warnings":
-                print(f"  {key}: {value}")
-        for w in dict.fromkeys(reader.warnings):
-            print(f"  warning: {w}")
+        info = jsonable(dict(info) if isinstance(info, dict) else vars(info))
+        found = list(dict.fromkeys(reader.warnings))
+        if args.json:
+            info.update(path=str(args.file), format=reader.format, warnings=found)
+            print(json.dumps(info, indent=2))
+            for w in found:
+                print(f"warning: {w}", file=sys.stderr)
+        else:
+            print(recording_text(args.file, reader.format, info, found))
+    elif args.json:
+        info = scene_summary(args.file)
+        print(json.dumps(info, indent=2))
+        for w in info["warnings"]:
+            print(f"warning: {w}", file=sys.stderr)
     else:
         from .info import describe
 
         print(describe(args.file))
     return 0
+
+
+def kept_events_line(stats, opts) -> str:
+    """'kept N of M events (why)': what --events kept of the recording's events stream."""
+    if opts.events == "all":
+        why = "--events all keeps every event"
+    else:
+        n = stats.exposures
+        why = (f"--events margin: {opts.event_margin_ms:g} ms either side of the {n:,} selected exposure"
+               f"{'' if n == 1 else 's'}; --events all keeps every event")
+    line = f"kept {stats.events:,} of {stats.events_in_file:,} events ({why})"
+    if stats.events_read > stats.events:
+        line += f"; {stats.events_read - stats.events:,} fell outside the sensor once undistorted"
+    return line
 
 
 def _davis(args) -> int:
@@ -78,7 +102,7 @@ def _davis(args) -> int:
 
     _input_file(args.recording)
     # a rough lower bound: the events kept (a fraction of the recording with --events margin) and the frames
-    _output_file(args.out, os.path.getsize(args.recording) // (4 if args.events == "all" else 20))
+    _output_file(args.out, os.path.getsize(args.recording) // (4 if args.events == "all" else 20), args.force)
     opts = DavisOptions(every=args.every, max_views=args.max_views, min_exposure_us=args.min_exposure_us,
                         events=args.events, event_margin_ms=args.event_margin_ms, subposes=args.subposes,
                         poses=not args.no_poses, calibration=args.calibration, frames_stream=args.frames_stream,
@@ -91,14 +115,15 @@ def _davis(args) -> int:
     if not args.quiet:
         reg = ("" if stats.registered is None else
                f", {stats.registered} of {stats.latent_frames} latent frames registered by pycolmap")
-        print(f"{stats.views} views (of {stats.frames_in_file} frames), {stats.events} events{reg} -> {args.out}")
+        print(kept_events_line(stats, opts))
+        print(f"{stats.views} views (of {stats.frames_in_file} frames), {stats.events:,} events{reg} -> {args.out}")
     return 0
 
 
 def _e2nerf(args) -> int:
     from ..io.e2nerf import import_e2nerf
 
-    _output_file(args.out, 0)
+    _output_file(args.out, 0, args.force)
     path = import_e2nerf(args.directory, args.out, pos_threshold=args.pos_threshold,
                          neg_threshold=args.neg_threshold)
     if not args.quiet:
@@ -121,6 +146,9 @@ def build_parser():
     i.add_argument("--sensor-size", type=_sensor_size, metavar="WxH",
                    help="sensor size of an AEDAT 2.0/3.1 recording whose header names no camera, e.g. 240x180 "
                         "(default: from the header; without one, inferred from the addresses with a warning)")
+    i.add_argument("--json", action="store_true",
+                   help="print the same information as JSON, for scripts (default: off, aligned text); warnings "
+                        "are in its \"warnings\" list and on stderr")
     i.set_defaults(func=_info)
     d = sub.add_parser("davis", help="a DAVIS recording (DAVIS346/240, jAER or DV) -> scene.h5 (EDI + pycolmap poses)")
     d.add_argument("recording", help="DAVIS recording (.aedat4, .aedat3 or .aedat 2.0)")
@@ -152,7 +180,7 @@ def build_parser():
                    help="OFF contrast threshold in log intensity (default %(default)s)")
     d.add_argument("--color-filter", default="none",
                    help="Bayer pattern of a colour DAVIS346's DVS, e.g. RGGB (default %(default)s)")
-    d.add_argument("--quiet", action="store_true", help="no summary line (default: off)")
+    add_output_options(d)
     d.add_argument("--strict", action="store_true",
                    help="fail (exit 2) on the first corrupt packet or value the recording contradicts (default: off: "
                         "drop it with a warning)")
@@ -164,7 +192,7 @@ def build_parser():
                    help="ON contrast threshold in log intensity (default %(default)s)")
     e.add_argument("--neg-threshold", type=finite_float, default=0.2,
                    help="OFF contrast threshold in log intensity (default %(default)s)")
-    e.add_argument("--quiet", action="store_true", help="no summary line (default: off)")
+    add_output_options(e)
     e.set_defaults(func=_e2nerf)
     return p
 

@@ -3,9 +3,23 @@ from __future__ import annotations
 
 import sys
 
-from .common import dispatch, finite_float, parser, subparsers
+from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 PREFILTERS = ("accurate", "fast", "none")  # ev3dgs.sim.scenes.PREFILTERS, without importing the simulator here
+BLENDER_EXTRA = "pip install 'ev3dgs[blender]' (bpy 5.0.1, Python 3.11)"
+
+
+def require_blender(command: str) -> None:
+    """Fail at once (one line, exit 2) when bpy is not installed: `command` renders in Blender worker processes,
+    which would otherwise fail only once spawned. Checked with find_spec: nothing here imports bpy."""
+    import importlib.util
+
+    from ..errors import ConfigError
+
+    if importlib.util.find_spec("bpy") is None:
+        major, minor = sys.version_info[:2]
+        running = "" if (major, minor) == (3, 11) else f"; Python {major}.{minor} is running"
+        raise ConfigError(f"{command} renders with Blender, which is not installed: {BLENDER_EXTRA}{running}")
 
 
 def _events(args) -> int:
@@ -18,7 +32,8 @@ def _events(args) -> int:
 
     from ..outputs import check_output_file
 
-    check_output_file(args.out, make_parents=True)  # before simulating; schema.write checks the space it needs
+    # before simulating; schema.write checks the space it needs
+    check_output_file(args.out, make_parents=True, force=args.force)
     cfg = load_sim_config(args.config)
     frames, t_us = load_frames_npz(args.input)
     ev = simulate_events(frames, t_us, cfg.dvs, seed=args.seed, isp=cfg.isp)
@@ -50,15 +65,15 @@ def _blur(args) -> int:
 
     from ..outputs import check_output_file
 
-    check_output_file(args.out)
+    suffix = "." + args.out.rsplit(".", 1)[-1].lower() if "." in args.out else ""
+    if suffix not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+        raise InputError(f"--out must end in .png, .jpg or .tif, got {args.out!r}")
+    check_output_file(args.out, force=args.force)
     cfg = load_sim_config(args.config)
     frames, _ = load_frames_npz(args.input, need_t=False)
     if frames.ndim == 3:
         frames = np.repeat(frames[..., None], 3, axis=-1)
     image = blur_frames(frames, cfg.isp, cfg.sensor_noise, seed=args.seed)
-    suffix = "." + args.out.rsplit(".", 1)[-1].lower() if "." in args.out else ""
-    if suffix not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
-        raise InputError(f"--out must end in .png, .jpg or .tif, got {args.out!r}")
     ok, data = cv2.imencode(suffix, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     if not ok:
         raise InputError(f"could not encode {args.out}")
@@ -79,9 +94,13 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def _make_dataset(args) -> int:
+    if not (args.executor == "ray" and args.address):   # Ray actors on a cluster need bpy on its nodes only
+        require_blender("make-dataset")
+    from ..outputs import check_output_file
     from ..sim.dataset import make_dataset
     from ..sim.scenes import load_scene, resolve_render
 
+    check_output_file(args.out, force=args.force)   # before loading the scene and rendering
     spec = load_scene(args.scene)
     w, h = args.size if args.size else (None, None)
     render = resolve_render(spec, args.quick, width=w, height=h, views=args.views, test_views=args.test_views,
@@ -89,7 +108,7 @@ def _make_dataset(args) -> int:
                             denoise_prefilter=args.denoise_prefilter)
     stats = make_dataset(spec, render, args.out, blend=args.blend, workers=args.workers, seed=args.seed,
                          quiet=args.quiet, keep_cache=args.keep_cache, executor=args.executor,
-                         address=args.address)
+                         address=args.address, force=args.force)
     if not args.quiet:
         sec = stats.seconds
         print(f"{spec.name}: {render.views} views + {render.test_views} test views at {render.width}x{render.height}, "
@@ -100,18 +119,21 @@ def _make_dataset(args) -> int:
 
 
 def _record(args) -> int:
+    from pathlib import Path
+
+    require_blender("record")
     from ..sim.record import record
 
-    from ..outputs import check_output_file
-
     w, h = args.size if args.size else (346, 260)
-    check_output_file(args.out)
+    # record checks its three outputs (the .aedat4, its .trajectory.npz and .calibration.toml) before rendering
     info = record(args.scene, args.out, seconds=args.seconds, fps=args.fps, exposure_ms=args.exposure_ms,
                   render_rate_hz=args.render_rate, width=w, height=h, samples=args.samples, seed=args.seed,
-                  workers=args.workers, quiet=args.quiet, denoise_prefilter=args.denoise_prefilter)
+                  workers=args.workers, quiet=args.quiet, denoise_prefilter=args.denoise_prefilter,
+                  force=args.force)
     if not args.quiet:
         print(f"{info['frames']} APS frames, {info['events']} events, {info['imu']} IMU samples over "
-              f"{args.seconds} s -> {args.out} (+ ground-truth trajectory .trajectory.npz)")
+              f"{args.seconds} s -> {args.out} (+ ground truth {Path(info['trajectory']).name} and "
+              f"{Path(args.out).stem}.calibration.toml)")
     return 0
 
 
@@ -136,7 +158,7 @@ def build_parser():
     e.add_argument("--config", help="TOML with [dvs] settings and effect tables, see ev3dgs.sim.config "
                                     "(default: none, the built-in DVS346-like settings)")
     e.add_argument("--seed", type=int, default=0, help="random seed of the noise effects (default %(default)s)")
-    e.add_argument("--quiet", action="store_true", help="no summary line (default: off)")
+    add_output_options(e)
     e.set_defaults(func=_events)
     b = sub.add_parser("blur", help="sub-frames (.npz: frames) -> one blurry sRGB image")
     b.add_argument("input", help=".npz with frames (S,H,W,3): uint8 sRGB or float linear")
@@ -144,9 +166,10 @@ def build_parser():
     b.add_argument("--config", help="TOML with [isp] and [sensor_noise] tables "
                                     "(default: none, the built-in ISP and noise)")
     b.add_argument("--seed", type=int, default=0, help="random seed of the sensor noise (default %(default)s)")
-    b.add_argument("--quiet", action="store_true", help="no summary line (default: off)")
+    add_output_options(b)
     b.set_defaults(func=_blur)
-    m = sub.add_parser("make-dataset", help="render a scene in Blender -> events + blurry frames -> scene.h5")
+    m = sub.add_parser("make-dataset", help="render a scene in Blender -> events + blurry frames -> scene.h5 "
+                                            "(needs the Blender extra: pip install 'ev3dgs[blender]')")
     m.add_argument("--scene", required=True, help="built-in scene name (see list-scenes) or a scene .toml")
     m.add_argument("--blend", help="render this .blend (an object near the origin) with our cameras "
                                        "(default: none, the scene's builder makes the geometry)")
@@ -179,11 +202,13 @@ def build_parser():
     m.add_argument("--keep-cache", action="store_true",
                    help="keep the rendered views beside the output (default: off, removed once the "
                         "scene file is written)")
-    m.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
+    add_output_options(m)
     m.set_defaults(func=_make_dataset)
-    r = sub.add_parser("record", help="a DAVIS346-like AEDAT 4.0 recording of a scene along a hand-held path")
+    r = sub.add_parser("record", help="a DAVIS346-like AEDAT 4.0 recording of a scene along a hand-held path "
+                                      "(needs the Blender extra: pip install 'ev3dgs[blender]')")
     r.add_argument("--scene", required=True, help="built-in scene name or a scene .toml")
-    r.add_argument("--out", required=True, help="output .aedat4 (the ground truth goes beside it)")
+    r.add_argument("--out", required=True, help="output .aedat4; the ground truth goes beside it as "
+                                                "NAME.trajectory.npz and NAME.calibration.toml (no default)")
     r.add_argument("--seconds", type=finite_float, default=2.0,
                    help="length of the recording in seconds (default %(default)s s)")
     r.add_argument("--fps", type=finite_float, default=10.0, help="APS frames per second (default %(default)s)")
@@ -201,7 +226,7 @@ def build_parser():
                                                          "(default %(default)s)")
     r.add_argument("--seed", type=int, default=0, help="random seed of the hand-held path and noise "
                                                       "(default %(default)s)")
-    r.add_argument("--quiet", action="store_true", help="no progress bar or summary (default: off)")
+    add_output_options(r)
     r.set_defaults(func=_record)
     ls = sub.add_parser("list-scenes", help="the built-in scenes: names first, then descriptions")
     ls.set_defaults(func=_list_scenes)

@@ -18,11 +18,10 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..errors import InputError
-from ..outputs import OutputError, _pid_alive, check_output_dir, os_error_message
+from ..outputs import OutputError, _pid_alive, check_output_dir, os_error_message, write_image
 
 _STAGE = ".{name}.tmp-{pid}"
 
@@ -37,9 +36,7 @@ def _is_empty_dir(p: Path) -> bool:
 def check_out_dir(out: str | os.PathLike, force: bool, estimated_bytes: int = 0) -> Path:
     """Fail now (one line) if DIR is a file, not writable, short of space, or non-empty without force."""
     out = Path(out)
-    check_output_dir(out, estimated_bytes)
-    if out.is_dir() and not force and not _is_empty_dir(out):
-        raise OutputError(f"--out {out} is not empty; use --force to replace it", _errno.ENOTEMPTY)
+    check_output_dir(out, estimated_bytes, force=force)   # a non-empty folder: one line naming --force
     return out
 
 
@@ -71,7 +68,8 @@ def staged_dir(out: str | os.PathLike, force: bool = False) -> Iterator[Path]:
         old = None
         if out.exists():
             if not force and not _is_empty_dir(out):  # filled while we worked
-                raise OutputError(f"--out {out} is not empty; use --force to replace it", _errno.ENOTEMPTY)
+                raise OutputError(f"--out {out} is a folder that is not empty (filled while exporting); pass --force "
+                                      "to replace its contents", _errno.ENOTEMPTY)
             old = out.with_name(f".{out.name}.old-{os.getpid()}")
             os.replace(out, old)
         os.replace(stage, out)
@@ -104,8 +102,7 @@ def write_png(path: Path, rgb: np.ndarray, alpha: bool = False) -> None:
     bgr = img[..., ::-1]
     if alpha:
         bgr = np.concatenate([bgr, np.full(img.shape[:2] + (1,), 255, np.uint8)], axis=2)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(bgr)):
-        raise OutputError(f"cannot write {path}: the PNG encoder failed", _errno.EIO)
+    write_image(path, np.ascontiguousarray(bgr), "PNG")
 
 
 def image_width(n: int, step: int = 1) -> int:

@@ -80,7 +80,10 @@ class IngestStats:
     views: int = 0
     registered: int | None = None
     latent_frames: int = 0
-    events: int = 0
+    events: int = 0                   # events in the scene file
+    events_in_file: int = 0           # events in the recording's events stream (its FileDataTable, or as read)
+    events_read: int = 0              # events --events selected, before undistortion drops those off the sensor
+    exposures: int = 0                # exposures the --events margin windows surround (views before pose estimation)
     warnings: list = field(default_factory=list)
 
 
@@ -129,19 +132,64 @@ def _merge_windows(windows: list[tuple[int, int]]) -> list[tuple[int, int]]:
     return out
 
 
-def read_events(reader, opts: DavisOptions, views: list[FrameData]) -> Events:
+def events_in_file(reader, stream=None) -> int | None:
+    """Events in the recording's events stream as far as the reader already knows them, without decoding again:
+    an AEDAT 4.0 file from its FileDataTable, an AEDAT 2.0/3.1 file from the pass that decoded it (kept in memory
+    for files up to ~128 MiB). None when unknown (no FileDataTable, a large file kept only as a time index)."""
+    if reader.format == "aedat4":
+        sid = reader._select(stream, "events").id
+        table = reader.packet_table()
+        n = table["elements"][table["stream"] == sid]
+        return int(n.sum()) if (n >= 0).all() else None
+    info = getattr(reader, "_info", None)
+    if isinstance(info, dict) and "events" in info and stream is None:
+        return int(info["events"])
+    if reader.format == "aedat2":
+        cache = getattr(reader, "_cache", None)
+        if cache is not None and cache.get("events") is not None:
+            return sum(len(e) for e in cache["events"])
+    elif reader.format == "aedat3.1":
+        parts = getattr(reader, "_ev_cache", {}).get(reader._select(stream, "events"))
+        if parts is not None:
+            return sum(len(e) for e in parts)
+    return None
+
+
+def read_events_counted(reader, opts: DavisOptions, views: list[FrameData]) -> tuple[Events, int]:
+    """(the events --events keeps, the events in the recording's stream). The total comes from what the reader
+    knows (events_in_file); when it does not know it, the events are read in one pass that counts them and keeps
+    those inside the windows (the same events, in the same order, as reading the windows)."""
+    total = events_in_file(reader, opts.events_stream)
     if opts.events == "all" or not views:
         parts = list(reader.events(opts.events_stream))
+        if total is None:
+            total = sum(len(p) for p in parts)
     else:
         m = int(opts.event_margin_ms * 1000)
+        windows = _merge_windows([(_window(v)[0] - m, _window(v)[1] + m) for v in views])
         parts = []
-        for s, e in _merge_windows([(_window(v)[0] - m, _window(v)[1] + m) for v in views]):
-            parts.extend(reader.events(opts.events_stream, s, e))
+        if total is not None:   # the reader skips the packets outside the windows (FileDataTable, time index)
+            for s, e in windows:
+                parts.extend(reader.events(opts.events_stream, s, e))
+        else:
+            starts = np.array([w[0] for w in windows], np.int64)
+            ends = np.array([w[1] for w in windows], np.int64)
+            total = 0
+            for ev in reader.events(opts.events_stream):
+                total += len(ev)
+                i = np.searchsorted(starts, ev.t, side="right") - 1
+                keep = (i >= 0) & (ev.t < ends[np.maximum(i, 0)])
+                if keep.any():
+                    parts.append(ev if keep.all() else Events(ev.t[keep], ev.x[keep], ev.y[keep], ev.p[keep]))
     ev = Events.concatenate(parts)
     if len(ev) and (np.diff(ev.t) < 0).any():  # packets of one stream out of order: restore time order
         order = np.argsort(ev.t, kind="stable")
         ev = Events(ev.t[order], ev.x[order], ev.y[order], ev.p[order])
-    return ev
+    return ev, int(total)
+
+
+def read_events(reader, opts: DavisOptions, views: list[FrameData]) -> Events:
+    return read_events_counted(reader, opts, views)[0]
 
 
 def _window(v: FrameData) -> tuple[int, int]:
@@ -207,7 +255,8 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
                        f"none of its {n} APS frames is usable (a view needs a full-size {W}x{H} frame at position "
                        f"(0, 0) exposed for >= {min_exposure(opts)} us)")
                 raise InputError(f"{path}: {why}")
-            ev = read_events(reader, opts, views)
+            ev, stats.events_in_file = read_events_counted(reader, opts, views)
+            stats.events_read, stats.exposures = len(ev), len(views)
             imu = reader.imu()
             stats.warnings = list(reader.warnings)
             fmt = reader.format
@@ -260,7 +309,8 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
                 "intrinsics": "calibration file" if opts.calibration else
                 ("pycolmap estimate" if opts.poses else "nominal 70-degree guess (no calibration, no poses)"),
                 "input_distortion": dist_in.tolist(), "undistorted": bool(np.any(dist_in != 0)),
-                "frames_in_file": stats.frames_in_file, "registered_latent_frames": stats.registered,
+                "frames_in_file": stats.frames_in_file, "events_in_file": stats.events_in_file,
+                "registered_latent_frames": stats.registered,
                 **({"unregistered_views": unregistered} if opts.poses else {}),
                 "reader_warnings": stats.warnings},
     )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import io
 import json
 import os
 import shutil
@@ -53,9 +54,13 @@ def _cache_key(spec: SceneSpec, render: Render, blend: Path | None, seed: int) -
 
 
 def _save_npz(path: Path, **arrays) -> None:
+    # zipped in memory first (one view's frames): a full disk then fails in one plain write, instead of inside
+    # zipfile, whose half-closed archive would raise again from ZipFile.__del__ after the error was reported
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
     with atomic_path(path) as tmp:  # on failure: temporary removed, OutputError naming the reason
         with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+            f.write(buf.getbuffer())
 
 
 _BLEND_MAGIC = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")  # plain, gzip- or zstd-compressed .blend
@@ -147,7 +152,9 @@ def _to_srgb(linear: np.ndarray, spec: SceneSpec) -> np.ndarray:
 
 def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | Path | None = None,
                  workers: int = 1, seed: int = 0, quiet: bool = False, keep_cache: bool = False,
-                 executor: str = "local", address: str | None = None) -> DatasetStats:
+                 executor: str = "local", address: str | None = None, force: bool = True) -> DatasetStats:
+    """Render `spec` with `render`'s settings and write the scene file `out` (see the module doc).
+    force=False: an existing `out` is refused (OutputError) before any rendering."""
     out = Path(out)
     if out.suffix not in (".h5", ".hdf5"):
         raise InputError(f"--out must end in .h5, got {out}")
@@ -173,7 +180,7 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
     jobs.update({f"test_{j:04d}": pose[None] for j, pose in enumerate(novel_view_poses(render, seed))})
     cache = out.parent / f".{out.stem}.cache-{_cache_key(spec, render, blend, seed)}"
     # before any rendering: the output can be written, with room for the cache and the file
-    check_output_file(out, _estimate_bytes(render, cache))
+    check_output_file(out, _estimate_bytes(render, cache), force=force)
     remove_stale_temps(out.parent, out.name)   # left by a killed run: the scene file's temporary
     try:
         cache.mkdir(exist_ok=True)

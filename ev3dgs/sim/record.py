@@ -108,12 +108,29 @@ def _gray(srgb: np.ndarray) -> np.ndarray:
     return np.clip(np.round(255.0 * lin), 0, 255).astype(np.uint8)
 
 
+def outputs(out) -> dict[str, Path]:
+    """The files `record` writes for OUT.aedat4: the recording, its ground-truth trajectory and calibration."""
+    out = Path(out)
+    return {"--out": out, "ground truth": out.with_suffix(".trajectory.npz"),
+            "calibration": out.parent / f"{out.stem}.calibration.toml"}
+
+
+def check_outputs(out, force: bool = True) -> None:
+    """Fail now (OutputError) if OUT.aedat4 cannot be written, or (unless force) if any of the three files
+    exists: a new recording never silently replaces an earlier one or its ground truth."""
+    from ..outputs import check_output_file
+
+    for option, path in outputs(out).items():
+        check_output_file(path, option=option, force=force)
+
+
 def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, exposure_ms: float = 50,
            render_rate_hz: float = 250, width: int = 346, height: int = 260, samples: int = 8, seed: int = 0,
            workers: int = 1, quiet: bool = True, arc_deg: float = 75.0, compression: str = "lz4",
-           keep_cache: bool = False, denoise_prefilter: str | None = None) -> dict:
-    """Render, simulate and write OUT.aedat4 + OUT.trajectory.npz; returns a summary (counts, seconds).
-    denoise_prefilter: OIDN's guide prefilter ("accurate", "fast", "none"; None: the scene's)."""
+           keep_cache: bool = False, denoise_prefilter: str | None = None, force: bool = True) -> dict:
+    """Render, simulate and write OUT.aedat4 + OUT.trajectory.npz + OUT.calibration.toml; returns a summary
+    (counts, seconds). denoise_prefilter: OIDN's guide prefilter ("accurate", "fast", "none"; None: the
+    scene's). force=False: refuse (OutputError) if any of the three files exists, before any rendering."""
     out = Path(out)
     if out.suffix != ".aedat4":
         raise InputError(f"the recording must end in .aedat4, got {out}")
@@ -121,6 +138,7 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
         raise InputError(f"output folder does not exist: {out.parent}")
     if not (seconds > 0 and fps > 0 and exposure_ms > 0 and render_rate_hz > 0 and workers >= 1):
         raise InputError("seconds, fps, exposure_ms, render_rate_hz must be > 0 and workers >= 1")
+    check_outputs(out, force)
     spec = load_scene(str(scene_name_or_toml))
     if spec.builder is None:
         raise InputError(f"scene {spec.name!r} names no builder")
@@ -203,7 +221,7 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
     n_events = sum(len(p) for p in parts)
     write_aedat4(out, W, H, (p for p in parts if len(p)), aps, imu, compression=compression,
                  camera_name="DAVIS346_SIM", ts_offset=EPOCH_US)
-    traj_path = out.with_suffix(".trajectory.npz")
+    traj_path = outputs(out)["ground truth"]
     tmp = traj_path.with_name(f".{traj_path.name}.tmp-{os.getpid()}")
     with open(tmp, "wb") as f:
         np.savez(f, t_us=t_abs, c2w=poses, K=K, width=W, height=H,
@@ -216,7 +234,7 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
         shutil.rmtree(cache, ignore_errors=True)
     # the ground-truth intrinsics as a calibration file `ev3dgs-ingest davis --calibration` reads
     K_true = np.asarray(K, float)
-    (out.parent / f"{out.stem}.calibration.toml").write_text(
+    outputs(out)["calibration"].write_text(
         f"width = {W}\nheight = {H}\nfx = {K_true[0, 0]!r}\nfy = {K_true[1, 1]!r}\n"
         f"cx = {K_true[0, 2]!r}\ncy = {K_true[1, 2]!r}\n")
     return {"path": str(out), "trajectory": str(traj_path), "scene": spec.name, "width": W, "height": H,
@@ -225,4 +243,4 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
             "readback_error": float(np.abs(readback - poses).max()), "seconds": timing}
 
 
-__all__ = ["record", "Trajectory", "imu_samples", "EPOCH_US", "READOUT_US", "IMU_RATE_HZ"]
+__all__ = ["record", "outputs", "check_outputs", "Trajectory", "imu_samples", "EPOCH_US", "READOUT_US", "IMU_RATE_HZ"]
