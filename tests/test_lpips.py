@@ -259,16 +259,29 @@ def run64(tmp_path_factory):
     return _run(tmp_path_factory, 64, 48)
 
 
-def _panels(png, n, w, h):
-    """The n images of a side-by-side eval PNG (each padded by one white pixel)."""
+def _panels(png, labels, w, h):
+    """The images of a side-by-side eval PNG: each panel padded by one white pixel and, when evaluate captions
+    them, under a caption strip in a column as wide as the caption needs (the geometry of evaluate's own
+    ``_labelled``, applied to a blank image)."""
     import cv2
 
+    from ev3dgs.train import evaluate as ev
+
     row = cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB)
-    return [row[1:h + 1, i * (w + 2) + 1:i * (w + 2) + w + 1] for i in range(n)]
+    out, x = [], 0
+    for label in labels:
+        if hasattr(ev, "_labelled"):
+            col_w, top = ev._labelled(np.zeros((h, w, 3), np.uint8), label).shape[1], ev.LABEL_HEIGHT
+        else:
+            col_w, top = w, 0
+        x0 = x + 1 + (col_w - w) // 2
+        out.append(row[1 + top:1 + top + h, x0:x0 + w])
+        x += col_w + 2
+    return out
 
 
 def test_eval_writes_lpips(run64, alex_file, capsys):
-    assert cli.main(["eval", str(run64), "--lpips-weights", str(alex_file[0]), "--device", "cpu"]) == 0
+    assert cli.main(["eval", str(run64), "--lpips-weights", str(alex_file[0]), "--device", "cpu", "--force"]) == 0
     out = capsys.readouterr().out
     assert "LPIPS v0.1 (alex" in out and out.count("LPIPS 0.") + out.count("LPIPS 1.") >= 3
     m = json.loads((run64 / "metrics.json").read_text())
@@ -278,17 +291,18 @@ def test_eval_writes_lpips(run64, alex_file, capsys):
         assert m[key]["lpips"] == pytest.approx(np.mean(m[key]["lpips_per_view"]), rel=1e-12)
     # each value is LPIPS of the images eval wrote, recomputed by the numpy implementation (float32 network)
     for i in range(2):
-        truth, pred = _panels(run64 / "eval" / f"test_{i:03d}.png", 2, 64, 48)
+        truth, pred = _panels(run64 / "eval" / f"test_{i:03d}.png", ("ground truth", "rendered"), 64, 48)
         ref = np_lpips(alex_file[1], "alex", pred, truth)
         assert m["novel_view"]["lpips_per_view"][i] == pytest.approx(ref, rel=tolerance("alex", U32))
     for i in range(4):
-        blurry, pred, sharp = _panels(run64 / "eval" / f"train_{i:03d}.png", 3, 64, 48)
+        blurry, pred, sharp = _panels(run64 / "eval" / f"train_{i:03d}.png",
+                                      ("blurry input", "rendered", "ground truth"), 64, 48)
         assert m["blur_view"]["lpips_per_view"][i] == pytest.approx(np_lpips(alex_file[1], "alex", pred, sharp),
                                                                      rel=tolerance("alex", U32))
         assert m["blurry_input"]["lpips_per_view"][i] == pytest.approx(
             np_lpips(alex_file[1], "alex", blurry, sharp), rel=tolerance("alex", U32))
     # without weights: null with the reason, and no per-view LPIPS
-    assert cli.main(["eval", str(run64), "--device", "cpu"]) == 0
+    assert cli.main(["eval", str(run64), "--device", "cpu", "--force"]) == 0
     m = json.loads((run64 / "metrics.json").read_text())
     assert m["lpips"] is None and "--lpips-weights" in m["lpips_reason"] and "lpips" not in m["blur_view"]
 
@@ -320,11 +334,11 @@ def test_bad_weight_files_exit_2_with_one_line(run64, alex_file, tmp_path, capsy
     for name, data in _bad_files(tmp_path, *alex_file).items():
         path = tmp_path / f"{name.replace(' ', '_')}.pth"
         path.write_bytes(data)
-        assert cli.main(["eval", str(run64), "--lpips-weights", str(path), "--device", "cpu"]) == 2, name
+        assert cli.main(["eval", str(run64), "--lpips-weights", str(path), "--device", "cpu", "--force"]) == 2, name
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: ") and str(path) in err[0], (name, err)
     for path in (tmp_path / "missing.pth", tmp_path):
-        assert cli.main(["eval", str(run64), "--lpips-weights", str(path), "--device", "cpu"]) == 2
+        assert cli.main(["eval", str(run64), "--lpips-weights", str(path), "--device", "cpu", "--force"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: "), err
     after = (run64 / "metrics.json").read_bytes() if (run64 / "metrics.json").exists() else None
@@ -333,17 +347,18 @@ def test_bad_weight_files_exit_2_with_one_line(run64, alex_file, tmp_path, capsy
 
 def test_eval_refuses_images_too_small_for_the_network(tmp_path_factory, alex_file, capsys):
     run = _run(tmp_path_factory, 40, 30)
-    assert cli.main(["eval", str(run), "--lpips-weights", str(alex_file[0]), "--device", "cpu"]) == 2
+    assert cli.main(["eval", str(run), "--lpips-weights", str(alex_file[0]), "--device", "cpu", "--force"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "at least 31x31" in err[0] and "40x30" in err[0], err
     assert evaluate(run, write_images=False)["lpips"] is None  # without weights the same run evaluates
 
 
-def _reference_lpips_module():
+def _reference_lpips_module(net="alex"):
     """The `lpips` package (0.1.4, installed by `make setup` with --no-deps: its own torchvision would replace
-    our torch) imported with a stand-in for ``torchvision.models`` that builds AlexNet's ``features`` layer
-    layout from FEATURES above (no weights: nothing can be downloaded here). Everything else (scaling layer,
-    normalisation, lin layers, spatial average, the shipped v0.1 lin weights) is the package's own."""
+    our torch) imported with a stand-in for ``torchvision.models`` that builds AlexNet's / VGG16's ``features``
+    layer layout from FEATURES above, randomly initialised (pnet_rand=True: no ImageNet weights are fetched).
+    Everything else (scaling layer, normalisation, lin layers, spatial average, the shipped v0.1 lin weights)
+    is the package's own."""
     import importlib.util
     import sys
     import types
@@ -351,7 +366,7 @@ def _reference_lpips_module():
     if importlib.util.find_spec("lpips") is None:
         pytest.skip("the reference lpips package is not installed (make setup installs it)")
     layers = []
-    for op in FEATURES["alex"]:
+    for op in FEATURES[net]:
         if op[0] == "C":
             layers.append(torch.nn.Conv2d(op[1], op[2], op[3], stride=op[4], padding=op[5]))
         elif op[0] == "R":
@@ -359,15 +374,14 @@ def _reference_lpips_module():
         else:
             layers.append(torch.nn.MaxPool2d(op[1], op[2]))
 
-    class _AlexNet(torch.nn.Module):
+    class _Trunk(torch.nn.Module):
         def __init__(self):
             super().__init__()
-            self.features = torch.nn.Sequential(*layers,
-                                                torch.nn.MaxPool2d(3, 2))
+            self.features = torch.nn.Sequential(*layers, torch.nn.MaxPool2d(*((3, 2) if net == "alex" else (2, 2))))
 
     models = types.ModuleType("torchvision.models")
-    models.alexnet = lambda *a, **k: _AlexNet()
-    models.AlexNet_Weights = types.SimpleNamespace(IMAGENET1K_V1=None)
+    models.alexnet = models.vgg16 = lambda *a, **k: _Trunk()
+    models.AlexNet_Weights = models.VGG16_Weights = types.SimpleNamespace(IMAGENET1K_V1=None)
     tv = types.ModuleType("torchvision")
     tv.models = models
     saved = {k: sys.modules.get(k) for k in ("torchvision", "torchvision.models")}
@@ -377,7 +391,7 @@ def _reference_lpips_module():
             del sys.modules[k]
         import lpips
         torch.manual_seed(0)
-        return lpips.LPIPS(net="alex", version="0.1", pretrained=True, pnet_rand=True, verbose=False).eval()
+        return lpips.LPIPS(net=net, version="0.1", pretrained=True, pnet_rand=True, verbose=False).eval()
     finally:
         for k, v in saved.items():
             if v is None:

@@ -1,6 +1,5 @@
 """LPIPS v0.1 (Zhang et al., "The Unreasonable Effectiveness of Deep Features as a Perceptual Metric", CVPR 2018)
-in plain torch, from a weights file the user supplies (nothing can be downloaded here, and torchvision does not
-import with our torch build).
+in plain torch (torchvision does not import with our torch build, so its model code is not used).
 
 The metric, as the reference package `lpips` (github.com/richzhang/PerceptualSimilarity) defines version 0.1:
 1. images in [0, 1] are mapped to [-1, 1], then through the scaling layer ``(x - shift) / scale`` with the
@@ -10,14 +9,22 @@ The metric, as the reference package `lpips` (github.com/richzhang/PerceptualSim
 4. the squared difference of the two images' normalised features is weighted per channel by a learned,
    non-negative 1x1 "lin" layer, averaged over the pixels of that layer, and the five layers are summed.
 
-The weights file is ONE torch file holding the reference model's state dict, made on a machine with internet:
+`load_lpips` takes either
+
+* a network name, ``"alex"`` or ``"vgg"`` (``ev3dgs eval --lpips alex``): the weights come from where
+  ``lpips.LPIPS(net=...)`` gets them, torchvision's ImageNet trunk (downloaded once into torch's hub cache,
+  ``$TORCH_HOME/hub/checkpoints/``) and lpips' v0.1 lin layers (the installed lpips package's file, else
+  downloaded once into the same folder); every file's SHA-256 is pinned and checked (see lpips_fetch.py); or
+* one torch file holding the reference model's whole state dict (``--lpips-weights FILE``), e.g. made with
 
     python -c "import lpips, torch; torch.save(lpips.LPIPS(net='alex', version='0.1').state_dict(), 'lpips_alex.pth')"
 
-(``net='vgg'`` for the VGG16 trunk). Its keys are ``scaling_layer.shift/scale``, ``net.sliceS.I.weight/bias``
-(S = 1..5, I the index of the conv in torchvision's ``features``), ``linK.model.1.weight`` (K = 0..4) and,
-from lpips 0.1.4 on, the same lin weights again as ``lins.K.model.1.weight``. `load_lpips` reads it with
-``torch.load(weights_only=True)``, checks every key, shape and value, and refuses anything else with one line.
+  (``net='vgg'`` for the VGG16 trunk). Its keys are ``scaling_layer.shift/scale``, ``net.sliceS.I.weight/bias``
+  (S = 1..5, I the index of the conv in torchvision's ``features``), ``linK.model.1.weight`` (K = 0..4) and,
+  from lpips 0.1.4 on, the same lin weights again as ``lins.K.model.1.weight``. It is read with
+  ``torch.load(weights_only=True)``.
+
+Either way every key, shape and value is checked, and anything else is refused with one line.
 """
 from __future__ import annotations
 
@@ -96,9 +103,12 @@ def min_size(net: str) -> int:
     return n
 
 
-def _refuse(path, why: str):
-    raise InputError(f"{path}: {why}; expected one torch file holding lpips.LPIPS(net='alex', version='0.1')"
-                     ".state_dict() (see ev3dgs/train/lpips.py for the one-line recipe)")
+FILE_HINT = ("expected one torch file holding lpips.LPIPS(net='alex', version='0.1').state_dict() (see "
+             "ev3dgs/train/lpips.py for the one-line recipe)")
+
+
+def _refuse(path, why: str, hint: str = FILE_HINT):
+    raise InputError(f"{path}: {why}; {hint}")
 
 
 def _short(keys) -> str:
@@ -106,8 +116,12 @@ def _short(keys) -> str:
     return ", ".join(keys[:3]) + (f" and {len(keys) - 3} more" if len(keys) > 3 else "")
 
 
-def _check_state(state, path) -> tuple[str, dict]:
-    """(trunk name, {key: float tensor}) of a state dict that is exactly an LPIPS v0.1 model's; else InputError."""
+def _check_state(state, path, hint: str = FILE_HINT) -> tuple[str, dict]:
+    """(trunk name, {key: float tensor}) of a state dict that is exactly an LPIPS v0.1 model's; else InputError
+    naming ``path``, what is wrong, and ``hint``."""
+    def _refuse(where, why):
+        raise InputError(f"{where}: {why}; {hint}")
+
     if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
         _refuse(path, f"holds a {type(state).__name__}, not a state dict")
     keys = set(state)
@@ -165,7 +179,7 @@ class Lpips:
         m = min_size(self.net)
         if width < m or height < m:
             raise InputError(f"LPIPS ({self.net}) needs images of at least {m}x{m} pixels, these are "
-                             f"{width}x{height}; evaluate without --lpips-weights")
+                             f"{width}x{height}; evaluate without LPIPS (no --lpips / --lpips-weights)")
 
     def _as_batch(self, img) -> torch.Tensor:
         """(H, W, 3) uint8, or float in [0, 1] (numpy or torch) -> (1, 3, H, W) in [-1, 1]."""
@@ -214,11 +228,67 @@ class Lpips:
         return total
 
 
+NETWORKS = tuple(TRUNKS)  # the names load_lpips fetches weights for: "alex", "vgg"
+
+
+def _part(net: str, path: Path, state, mapping: dict[str, str], ignore: tuple[str, ...] = ()) -> dict:
+    """The tensors of one fetched file under our key names: ``mapping`` {file key: our key}, exactly those keys
+    (besides ones starting with ``ignore``), each a floating-point tensor of the shape LPIPS needs."""
+    hint = "delete it to download it again, or pass --lpips-weights FILE"
+    if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
+        _refuse(path, f"holds a {type(state).__name__}, not a state dict", hint)
+    missing = set(mapping) - set(state)
+    extra = {k for k in state if k not in mapping and not k.startswith(ignore)}
+    if missing:
+        _refuse(path, f"not the LPIPS {net} weights: missing {_short(missing)}", hint)
+    if extra:
+        _refuse(path, f"not the LPIPS {net} weights: unexpected keys {_short(extra)}", hint)
+    shapes, out = expected_shapes(net), {}
+    for k, ours in mapping.items():
+        v = state[k]
+        if not torch.is_tensor(v) or not v.is_floating_point():
+            _refuse(path, f"{k} is not a floating-point tensor", hint)
+        if tuple(v.shape) != shapes[ours]:
+            _refuse(path, f"{k} has shape {tuple(v.shape)}, LPIPS {net} needs {shapes[ours]}", hint)
+        out[ours] = v
+    return out
+
+
+def _fetched(net: str) -> tuple[dict, str, str]:
+    """(LPIPS state dict, "trunk file + lin file", "trunk sha256 + lin sha256") assembled from torchvision's
+    ImageNet trunk and lpips' v0.1 lin layers, fetched into torch's hub cache on first use (lpips_fetch.py)."""
+    from . import lpips_fetch
+
+    trunk, trunk_path, trunk_sha = lpips_fetch.fetch_trunk(net)
+    lin, lin_path, lin_sha = lpips_fetch.fetch_lin(net)
+    convs = {}
+    for s, stage in enumerate(TRUNKS[net], start=1):
+        for op in stage:
+            if op[0] == "conv":
+                convs |= {f"features.{op[1]}.{w}": f"net.slice{s}.{op[1]}.{w}" for w in ("weight", "bias")}
+    state = {"scaling_layer.shift": torch.tensor(SHIFT, dtype=torch.float32).view(1, 3, 1, 1),
+             "scaling_layer.scale": torch.tensor(SCALE, dtype=torch.float32).view(1, 3, 1, 1)}
+    state |= _part(net, trunk_path, trunk, convs, ignore=("classifier.",))  # torchvision's classifier: unused
+    state |= _part(net, lin_path, lin, {f"lin{k}.model.1.weight": f"lin{k}.model.1.weight" for k in range(5)})
+    return state, f"{trunk_path} + {lin_path}", f"{trunk_sha} + {lin_sha}"
+
+
 def load_lpips(path: str | Path, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> Lpips:
-    """Read and check an LPIPS v0.1 weights file (see the module docstring); InputError names what is wrong."""
+    """LPIPS v0.1 from a network name, "alex" or "vgg" (its weights fetched the way the lpips package does, on
+    first use), or from one weights file (see the module docstring); InputError names what is wrong.
+
+    For a network name, ``info["weights"]`` is "<trunk file> + <lin file>" and ``info["sha256"]`` their two
+    SHA-256s joined the same way; for a file, that file and its SHA-256."""
+    if isinstance(path, str) and path in NETWORKS:
+        state, where, sha = _fetched(path)
+        net, weights = _check_state(state, where, "delete these files to download them again, or pass "
+                                                  "--lpips-weights FILE")
+        dev = torch.device(device)
+        return Lpips(net=net, weights={k: v.to(dev, dtype) for k, v in weights.items()}, path=where, sha256=sha,
+                     device=dev, dtype=dtype)
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{p}: no such LPIPS weights file")
+        raise InputError(f"{p}: no such LPIPS weights file (or name a network: {' or '.join(NETWORKS)})")
     try:
         data = p.read_bytes()
     except OSError as e:

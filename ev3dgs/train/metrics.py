@@ -39,9 +39,13 @@ def ssim_metric(a, b) -> float:
 
 
 def lpips_unavailable_reason(weights_path) -> str | None:
-    """None if ``weights_path`` is a readable file, else why LPIPS is reported as null."""
+    """None if ``weights_path`` names an LPIPS network ("alex", "vgg": its weights are fetched into torch's hub
+    cache on first use) or is a readable file, else why LPIPS is reported as null."""
+    if weights_path in ("alex", "vgg"):
+        return None
     if weights_path and os.path.isfile(weights_path) and os.access(weights_path, os.R_OK):
         return None
     where = f" ({weights_path!s} is not a readable file)" if weights_path else ""
-    return ("LPIPS unavailable: its network weights cannot be downloaded here; pass --lpips-weights "
-            f"with a local weights file (recipe in ev3dgs/train/lpips.py){where}")
+    return ("LPIPS not computed: pass --lpips alex (or vgg) to use the reference weights (downloaded once into "
+            "torch's hub cache), or --lpips-weights with a local weights file (recipe in ev3dgs/train/lpips.py)"
+            f"{where}")
