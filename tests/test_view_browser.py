@@ -1,7 +1,8 @@
 """`ev3dgs view` as a person sees it: the page loaded in a real headless Chromium (the system's /usr/bin/chromium,
 driven by playwright; no browser is downloaded), on a scene and on a short training run. Checks: the 3D canvas
 is not blank (the training frusta are drawn in their colour, and for the run the splats add colours of their
-own), and the panel's images are exactly the selected view's blurry and sharp frames (PNG, lossless).
+own), the panel's images are exactly the selected view's blurry and sharp frames (PNG, lossless), the "look
+through camera" button moves the 3D view, and the browser's console shows no error on either page.
 
 `make test-slow` installs Chromium from the system packages when it is missing (apt-get install chromium)."""
 import base64
@@ -70,15 +71,20 @@ def _page_images(page) -> list[np.ndarray]:
 
 
 def _look(path: str, shot: Path):
+    """Load the page; returns its text, its panel images, the 3D canvas's box and the console's errors. After
+    the screenshot, presses "look through camera" once and writes a second screenshot beside `shot`."""
     from playwright.sync_api import sync_playwright
 
     proc = _start([path, "--port", str(_free_port()), "--select", str(SELECT)])
+    errors = []
     try:
         url = _url(proc, timeout=180)
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
             try:
                 page = browser.new_page(viewport={"width": 1280, "height": 800})
+                page.on("console", lambda m: errors.append(f"console: {m.text}") if m.type == "error" else None)
+                page.on("pageerror", lambda e: errors.append(f"page error: {e}"))
                 page.goto(url)
                 page.wait_for_function("document.querySelectorAll('img[src^=\"blob:\"]').length >= 3",
                                        timeout=120_000)
@@ -90,12 +96,25 @@ def _look(path: str, shot: Path):
                     for (const c of document.querySelectorAll('canvas')) { const r = c.getBoundingClientRect();
                         if (!best || r.width * r.height > best.w * best.h) best = {x: r.x, y: r.y, w: r.width, h: r.height}; }
                     return best; }""")
+                page.get_by_role("button", name="look through camera").click()
+                page.wait_for_timeout(4000)
+                page.screenshot(path=str(_through(shot)))
             finally:
                 browser.close()
     finally:
         rc, err = _stop(proc)
     assert rc == 0, err
-    return text, images, box
+    return text, images, box, errors
+
+
+def _through(shot: Path) -> Path:
+    return shot.with_name(shot.stem + "_through" + shot.suffix)
+
+
+def _check_moved(shot: Path, box: dict):
+    """The look-through button changed the 3D view (the training camera's view is not the opening one)."""
+    a, b = _canvas_pixels(shot, box), _canvas_pixels(_through(shot), box)
+    assert np.abs(a - b).max(axis=1).astype(bool).mean() > 0.01, "look through camera did not move the view"
 
 
 def _canvas_pixels(shot: Path, box: dict) -> np.ndarray:
@@ -117,8 +136,10 @@ def _check_panel(text: str, images: list, scene_path: str):
 
 def test_scene_in_the_browser(scene_path, tmp_path):
     shot = tmp_path / "scene.png"
-    text, images, box = _look(scene_path, shot)
+    text, images, box, errors = _look(scene_path, shot)
+    assert errors == []
     _check_panel(text, images, scene_path)
+    _check_moved(shot, box)
     px = _canvas_pixels(shot, box)
     assert box["w"] > 600 and box["h"] > 400
     assert len(np.unique(px, axis=0)) > 50, "the 3D canvas is blank"
@@ -128,12 +149,15 @@ def test_scene_in_the_browser(scene_path, tmp_path):
 
 def test_run_in_the_browser(scene_path, run_dir, tmp_path):
     shot = tmp_path / "run.png"
-    text, images, box = _look(str(run_dir), shot)
+    text, images, box, errors = _look(str(run_dir), shot)
+    assert errors == []   # a page with Gaussians logged a NaN bounding sphere (see server.CLIENT_FIX)
     _check_panel(text, images, scene_path)
+    _check_moved(shot, box)
     assert "Gaussians from model.pt" in text
     px = _canvas_pixels(shot, box)
     assert len(np.unique(px, axis=0)) > 50, "the 3D canvas is blank"
     # the same page without the splats: their colours are what the model adds
-    text2, _, box2 = _look(scene_path, tmp_path / "scene_only.png")
+    _, _, box2, errors2 = _look(scene_path, tmp_path / "scene_only.png")
+    assert errors2 == []
     base = _canvas_pixels(tmp_path / "scene_only.png", box2)
     assert np.abs(px - base).max(axis=1).astype(bool).mean() > 0.002, "the Gaussians are not drawn"

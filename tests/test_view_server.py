@@ -162,3 +162,15 @@ def test_train_with_view_then_view_the_checkpoint(scene_path, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:  # argparse: one line, exit 2
         cli.main(["train", scene_path, "--out", str(run), "--view", "--view-port", "99999"])
     assert e.value.code == 2
+
+
+@pytest.mark.parametrize("host,why", [("256.1.1.1", "not an address or a name that resolves"),
+                                      ("192.0.2.1", "no local network interface has that address")])
+def test_an_address_that_cannot_be_bound_is_one_line_not_a_hang(scene_path, host, why):
+    """Binding is tried on this host alone (no traffic): an invalid address, or one no interface has, fails
+    at once with exit 2 instead of leaving the command waiting with no listener."""
+    t = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "ev3dgs.cli.main", "view", str(scene_path), "--host", host,
+                        "--port", "0"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and why in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and time.monotonic() - t < 60

@@ -1,9 +1,11 @@
 """The browser viewer: the content of data.py put into a viser server (optional extra ``ev3dgs[view]``).
 
-Scene tree: /world (axes and grid, their size printed in the panel), /train (frusta with thumbnails, exposure
+Scene tree: /world (grid) and /world/axes (thin axes about 15 % of the scene's size, at the corner of the scene
+box so they hide none of it; size and place printed in the panel), /train (frusta with thumbnails, exposure
 trajectories, start and end markers), /test, /points, /imu (gyro-integrated orientations), /refined (a run's
 refined trajectories), /splats (the Gaussians). The panel shows the selected view's blurry frame, its sharp
-frame and the events of its exposure up to a time chosen with a slider.
+frame and the events of its exposure up to a time chosen with a slider, and a button that puts the browser's
+camera at a training or test camera (its pose and vertical field of view).
 """
 from __future__ import annotations
 
@@ -11,8 +13,10 @@ import contextlib
 import io
 import signal
 import sys
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -26,6 +30,40 @@ TEST_COLOUR = (80, 80, 200)
 REFINED_COLOUR = (200, 30, 160)
 START_COLOUR, END_COLOUR = (20, 160, 60), (200, 30, 30)
 THUMB_PX = 128
+AXES_FRACTION = 0.15               # world axes length / scene extent
+AXES_THICKNESS = 0.02              # axes radius / axes length
+SELECTED_TRAIN = "selected training view"
+
+# viser's Gaussian-splat mesh draws one quad per Gaussian from a 2-D "position" attribute (its shader reads
+# position.xy; WebGL feeds z = 0). three.js reads a z for every vertex when it computes a geometry's bounding
+# sphere (for frustum culling and for depth-sorting transparent objects), finds none for the last vertex, and
+# logs "computeBoundingSphere(): Computed radius is NaN" on every page with splats. CLIENT_FIX gives such a
+# geometry the same corners with z = 0 written out (drawn identically, bounds now finite) and turns culling off
+# for its mesh (the quad's bounds say nothing about where the shader places the splats; viser does the same for
+# its other shader-placed meshes). It runs before each render of every three.js Scene, which three.js
+# announces on window.__THREE_DEVTOOLS__ as it creates it; the script provides that before viser's client loads.
+CLIENT_FIX = """<script>(() => {
+  const hub = window.__THREE_DEVTOOLS__ || (window.__THREE_DEVTOOLS__ = new EventTarget());
+  const fix = (o) => {
+    const g = o.isMesh && o.geometry, p = g && g.attributes.position;
+    if (!p || p.itemSize !== 2 || p.isInterleavedBufferAttribute) return;
+    const xyz = new Float32Array(3 * p.count);
+    for (let i = 0; i < p.count; i++) { xyz[3 * i] = p.getX(i); xyz[3 * i + 1] = p.getY(i); }
+    g.setAttribute("position", new p.constructor(xyz, 3));
+    g.boundingBox = null;
+    g.boundingSphere = null;
+    o.frustumCulled = false;
+  };
+  hub.addEventListener("observe", (e) => {
+    const scene = e.detail;
+    if (!scene || !scene.isScene) return;
+    const before = scene.onBeforeRender;
+    scene.onBeforeRender = function (...args) {
+      scene.traverse(fix);
+      return before.apply(this, args);
+    };
+  });
+})();</script>"""
 
 
 def require_viser():
@@ -50,6 +88,92 @@ def _nice_length(extent: float) -> float:
     return float(min((m * p for m in (1, 2, 5, 10)), key=lambda v: abs(np.log(v / target))))
 
 
+def axes_length(extent: float) -> float:
+    """The world axes' length: AXES_FRACTION of the scene's extent."""
+    return AXES_FRACTION * max(float(extent), 1e-6)
+
+
+def axes_origin(c: data.SceneContent) -> np.ndarray:
+    """Where the world axes are drawn: the world origin when it lies outside the scene box (the scene's bounds,
+    else its points' box, else the camera centres' box), otherwise the box's lowest corner, so the axes run
+    along the box's edges and not through what it holds."""
+    sc = c.scene
+    if sc.bounds is not None:
+        box = np.asarray(sc.bounds, np.float64)
+    elif sc.points is not None and len(sc.points.xyz):
+        xyz = np.asarray(sc.points.xyz, np.float64)
+        box = np.stack([xyz.min(axis=0), xyz.max(axis=0)])
+    elif c.train_poses is not None:
+        centres = c.train_poses[:, :, :3, 3].reshape(-1, 3)
+        box = np.stack([centres.min(axis=0), centres.max(axis=0)])
+    else:
+        return np.zeros(3)
+    if not np.isfinite(box).all() or ((box[0] > 0) | (box[1] < 0)).any():
+        return np.zeros(3)
+    return box[0].copy()
+
+
+def _target(c: data.SceneContent) -> np.ndarray:
+    """The point the opening view looks at: the scene box's centre, else the points' median, else the
+    cameras' mean centre."""
+    sc = c.scene
+    if sc.bounds is not None:
+        return np.asarray(sc.bounds, np.float64).mean(axis=0)
+    if sc.points is not None and len(sc.points.xyz):
+        return np.median(np.asarray(sc.points.xyz, np.float64), axis=0)
+    return c.mid_poses()[:, :3, 3].mean(axis=0)
+
+
+def camera_view(c2w: np.ndarray, K: np.ndarray, width: int, height: int, distance: float) -> dict:
+    """The browser camera that looks through a pinhole camera (OpenCV camera-to-world pose: x right, y down,
+    z forward): its centre, a look-at point `distance` ahead on its +z axis, up = its -y axis, and the vertical
+    field of view of its image (radians)."""
+    c2w = np.asarray(c2w, np.float64)
+    R, centre = c2w[:3, :3], c2w[:3, 3]
+    return {"position": centre.copy(), "look_at": centre + distance * R[:, 2], "up_direction": -R[:, 1],
+            "fov": data.frustum(c2w, K, width, height).fov_y}
+
+
+def _client_root(viser) -> tempfile.TemporaryDirectory | None:
+    """A copy of viser's client build with CLIENT_FIX run first; None where the build is not as expected
+    (then the stock client is served)."""
+    build = Path(viser.__file__).resolve().parent / "client" / "build"
+    try:
+        html = (build / "index.html").read_text(encoding="utf-8")
+    except OSError:
+        return None
+    if "<head>" not in html:
+        return None
+    tmp = tempfile.TemporaryDirectory(prefix="ev3dgs-view-")
+    root = Path(tmp.name)
+    for item in build.iterdir():
+        if item.name != "index.html":
+            (root / item.name).symlink_to(item, target_is_directory=item.is_dir())
+    (root / "index.html").write_text(html.replace("<head>", "<head>" + CLIENT_FIX, 1), encoding="utf-8")
+    return tmp
+
+
+@contextlib.contextmanager
+def _serving_from(viser, root: Path | None):
+    """While a ViserServer is built: its web server serves the client from `root` (no change when None, nor
+    where viser builds its web server otherwise). Viewers are built one at a time (the main thread)."""
+    stock = getattr(getattr(viser, "infra", None), "WebsockServer", None)
+    if root is None or not isinstance(stock, type):
+        yield
+        return
+
+    class Server(stock):
+        def __init__(self, *args, **kwargs):
+            kwargs["http_server_root"] = root
+            super().__init__(*args, **kwargs)
+
+    viser.infra.WebsockServer = Server
+    try:
+        yield
+    finally:
+        viser.infra.WebsockServer = stock
+
+
 def _segments(polyline: np.ndarray) -> np.ndarray:
     return np.stack([polyline[:-1], polyline[1:]], axis=1)
 
@@ -58,16 +182,41 @@ def display_url(host: str, port: int) -> str:
     return f"http://{'127.0.0.1' if host in ('0.0.0.0', '::', '') else host}:{port}"
 
 
+def check_host(host: str) -> None:
+    """Fail in one line unless `host` resolves to an address a server can bind (a local interface's, or a
+    wildcard): viser's server thread would otherwise fail silently and leave the command waiting."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host or None, 0, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError) as e:
+        raise Ev3dgsError(f"cannot start the viewer on {host!r}: not an address or a name that resolves "
+                          f"({getattr(e, 'strerror', None) or e})") from None
+    why = None
+    for family, kind, proto, _, addr in infos:
+        try:
+            with socket.socket(family, kind, proto) as probe:
+                probe.bind(addr[:2] if family == socket.AF_INET else addr)
+            return
+        except OSError as e:
+            why = e.strerror or str(e)
+    raise Ev3dgsError(f"cannot start the viewer on {host!r}: no local network interface has that address ({why})")
+
+
 class Viewer:
     """A viser server showing one scene (and optionally a model); GUI callbacks run in viser's threads."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, label: str = "ev3dgs"):
         viser = require_viser()
+        check_host(host)
         self.host, self.requested_port = host, port
+        self._client_dir = _client_root(viser)
         try:
-            with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: we print one URL line
+            with contextlib.redirect_stdout(io.StringIO()), \
+                    _serving_from(viser, None if self._client_dir is None else Path(self._client_dir.name)):
                 self.server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
         except OSError as e:
+            self._remove_client_dir()
             raise Ev3dgsError(f"cannot start the viewer on {host}:{port} ({e.strerror or e})") from None
         self.port = int(self.server.get_port())
         self.url = display_url(host, self.port)
@@ -88,7 +237,10 @@ class Viewer:
         if rots is not None:
             s.set_up_direction(data.world_up(rots))
         unit = _nice_length(ext)
-        s.add_frame("/world", axes_length=unit, axes_radius=unit * 0.01)
+        s.add_frame("/world", show_axes=False)
+        length = axes_length(ext)
+        self.axes = s.add_frame("/world/axes", axes_length=length, axes_radius=length * AXES_THICKNESS,
+                                position=axes_origin(c))
         up = data.world_up(rots) if rots is not None else np.array([0.0, 0.0, 1.0])
         from ..geometry import matrix_to_quat
 
@@ -133,19 +285,14 @@ class Viewer:
                                    axes_radius=size * 0.03)
         self._info(c, unit)
         self._panel(c, select)
+        self._look_controls(c)
 
     def _initial_camera(self, c: data.SceneContent, up: np.ndarray) -> None:
         """Open the page looking at the scene from above and outside the cameras."""
         if c.train_poses is None:
             return
         centres = c.mid_poses()[:, :3, 3]
-        sc = c.scene
-        if sc.bounds is not None:
-            target = np.asarray(sc.bounds, np.float64).mean(axis=0)
-        elif sc.points is not None and len(sc.points.xyz):
-            target = np.median(np.asarray(sc.points.xyz, np.float64), axis=0)
-        else:
-            target = centres.mean(axis=0)
+        target = _target(c)
         radius = max(float(np.linalg.norm(centres - target, axis=1).max()), 0.5 * c.extent, 1e-3)
         side = centres[0] - target
         side -= up * (side @ up)
@@ -161,8 +308,9 @@ class Viewer:
         lines = [f"**{sc.name or c.path.name}** ({sc.source}): {c.n_views} training views, "
                  f"{0 if sc.test is None else len(sc.test.images)} test views, {len(sc.events)} events, "
                  f"{c.size[0]}x{c.size[1]} px",
-                 f"World axes: {unit:g} units long; grid cells {unit:g}. Training cameras orange (trajectory: "
-                 "green start, red end), test cameras blue."]
+                 f"World axes (x red, y green, z blue): {axes_length(c.extent):.3g} units long, drawn at "
+                 f"({', '.join(f'{v:.3g}' for v in axes_origin(c))}); grid cells {unit:g}. Training cameras "
+                 "orange (trajectory: green start, red end), test cameras blue."]
         if c.train_poses is None:
             lines.append("No poses in this file (ingested without pose estimation).")
         if c.imu is not None and np.isfinite(c.imu.angle_deg).any():
@@ -192,6 +340,48 @@ class Viewer:
         self.view_slider.on_update(lambda _e: self._select(int(self.view_slider.value)))
         self.time_slider.on_update(lambda _e: self._update_events())
         self._select(select)
+
+    def _look_controls(self, c: data.SceneContent) -> None:
+        if c.train_poses is None or c.n_views == 0:
+            return
+        g = self.server.gui
+        n_test = 0 if c.test_poses is None else len(c.test_poses)
+        self.look_choice = g.add_dropdown("camera", [SELECTED_TRAIN] + [f"test view {j}" for j in range(n_test)],
+                                          initial_value=SELECTED_TRAIN, order=2.1,
+                                          hint="the camera the button below looks through")
+        self.look_button = g.add_button("look through camera", order=2.2,
+                                        hint="put the 3D view at that camera: its pose and field of view")
+        self.look_button.on_click(lambda _e: self.look_through_choice())
+
+    def look_through_choice(self) -> None:
+        """The look-through button: the camera chosen in the dropdown (the selected training view's
+        mid-exposure pose, or a test view's pose)."""
+        c, choice = self._content, str(self.look_choice.value)
+        if choice == SELECTED_TRAIN:
+            pose = c.mid_poses()[self.selected]
+        else:
+            pose = c.test_poses[int(choice.rsplit(" ", 1)[1])]
+        self.look_through(pose)
+
+    def look_through(self, c2w: np.ndarray) -> None:
+        """Every connected browser's camera to the pinhole camera `c2w` (OpenCV camera-to-world) with the
+        scene's intrinsics; its orbit centre is the point ahead of it nearest to the scene's centre."""
+        c = self._content
+        c2w = np.asarray(c2w, np.float64)
+        ahead = float((_target(c) - c2w[:3, 3]) @ c2w[:3, 2])
+        distance = ahead if ahead > 0.05 * c.extent else 0.5 * c.extent
+        view = camera_view(c2w, c.scene.camera.K, *c.size, distance)
+        for client in self.server.get_clients().values():
+            cam = client.camera
+            try:
+                cam.position
+            except AssertionError:  # the page has not reported its camera yet (it opens at the initial one)
+                continue
+            with client.atomic():
+                cam.fov = view["fov"]
+                cam.position = view["position"]         # moves the look-at point along
+                cam.look_at = view["look_at"]
+                cam.up_direction = view["up_direction"]
 
     def _select(self, i: int) -> None:
         c = self._content
@@ -275,3 +465,9 @@ class Viewer:
             self._reader = None
         with contextlib.redirect_stdout(io.StringIO()):  # "(viser) Server stopped"
             self.server.stop()
+        self._remove_client_dir()
+
+    def _remove_client_dir(self) -> None:
+        if self._client_dir is not None:
+            self._client_dir.cleanup()
+            self._client_dir = None
