@@ -1,5 +1,6 @@
 # Everything runs from a virtual environment inside the repo (.venv); `make setup` builds it.
 PY ?= python3.11
+TORCH_PIP_ARGS ?=
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -12,8 +13,10 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml setup.py ev3dgs/io/aedat4/_fast.c
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --upgrade pip
-	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
-	$(BIN)/pip install torch==2.13.0
+	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages. On a machine whose pip
+	# resolves torch==2.13.0 to a CUDA build, TORCH_PIP_ARGS='--index-url https://download.pytorch.org/whl/cpu'
+	# gets the CPU build instead.
+	$(BIN)/pip install torch==2.13.0 $(TORCH_PIP_ARGS)
 	$(BIN)/pip install -e '.[blender,view,docs,dev]'
 	# the reference LPIPS package, for tests/test_lpips.py only; --no-deps: its torchvision would replace our torch
 	$(BIN)/pip install --no-deps lpips==0.1.4

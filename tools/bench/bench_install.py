@@ -49,7 +49,7 @@ def main(argv=None) -> int:
         rows = []
         for name, extras, after in (("core", "", ()), ("core + blender", "[blender]", ()),
                                     ("development (make setup)", "[blender,view,docs,dev]", ("lpips==0.1.4",))):
-            env_dir = base / name.split()[0]
+            env_dir = base / ("venv-" + extras.strip("[]").replace(",", "-") if extras else "venv-core")
             venv.create(env_dir, with_pip=True)
             empty = _size(env_dir)
             seconds = _pip(env_dir, TORCH) + _pip(env_dir, f"{whl}{extras}")
