@@ -203,7 +203,7 @@ def test_render_gif_and_mp4_read_back(run, tmp_path, capsys):
         assert im.format == "GIF" and im.n_frames == 4 and im.size == (40, 30)
     assert cli.main(["render", str(run), "--out", str(tmp_path / "o.mp4"), "--frames", "5"]) == 0
     out = capsys.readouterr().out
-    assert "fourcc" in out and any(c in out for c in ("avc1", "H264", "mp4v"))
+    assert "mp4, H.264" in out or "MPEG-4 part 2 (fourcc mp4v" in out, out
     frames = _video_frames(tmp_path / "o.mp4")
     assert len(frames) == 5 and frames[0].shape == (H, W, 3)
     assert cli.main(["render", str(run), "--out", str(tmp_path / "f"), "--frames", "3", "--size", "16x12"]) == 0
@@ -212,6 +212,29 @@ def test_render_gif_and_mp4_read_back(run, tmp_path, capsys):
     files = sorted((tmp_path / "f").iterdir())
     assert [p.name for p in files] == [f"frame_{i:04d}.png" for i in range(3)]
     assert cv2.imread(str(files[0])).shape == (12, 16, 3)
+
+
+def test_mp4_is_h264_with_the_video_extra_and_says_so_without(run, tmp_path, capsys, monkeypatch):
+    """With imageio-ffmpeg (ev3dgs[video]) the mp4 is H.264 (what browsers play; odd sizes padded to even, as
+    yuv420p needs); without it, MPEG-4 part 2 and the summary names the extra."""
+    import cv2
+
+    from ev3dgs.train import paths
+
+    pytest.importorskip("imageio_ffmpeg")
+    assert cli.main(["render", str(run), "--out", str(tmp_path / "a.mp4"), "--frames", "3", "--size", "33x25"]) == 0
+    assert "mp4, H.264" in capsys.readouterr().out
+    cap = cv2.VideoCapture(str(tmp_path / "a.mp4"))
+    code = int(cap.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little").decode("ascii", "replace").lower()
+    cap.release()
+    assert code in ("avc1", "h264"), code
+    frames = _video_frames(tmp_path / "a.mp4")
+    assert len(frames) == 3 and frames[0].shape == (26, 34, 3)
+    monkeypatch.setattr(paths, "_ffmpeg", lambda: None)
+    assert cli.main(["render", str(run), "--out", str(tmp_path / "b.mp4"), "--frames", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "fourcc mp4v" in out and "ev3dgs[video]" in out
+    assert len(_video_frames(tmp_path / "b.mp4")) == 3
 
 
 def test_gif_keeps_identical_frames():

@@ -42,7 +42,7 @@ def _leftovers(folder) -> list[str]:
 
 @pytest.mark.parametrize("out", ["o.mp4", "o.gif", "frames"])
 def test_render_to_a_full_disk_leaves_nothing_under_the_final_name(trained, full_disk, capfd, out):  # noqa: F811
-    assert call(["render", str(trained), "--out", str(full_disk / out), "--frames", "200", "--size", "96x72"]) == 2
+    assert call(["render", str(trained), "--out", str(full_disk / out), "--frames", "200", "--size", "320x240"]) == 2
     err = _one_line(capfd)
     assert "No space left on device" in err or "ENOSPC" in err or "broken file" in err, err
     assert _leftovers(full_disk) == [], _leftovers(full_disk)

@@ -181,7 +181,9 @@ def _render(args) -> int:
     info: dict = {}
     n = write_frames(render_frames(model, poses, K, W, H, bg, backend=cfg.backend), args.out, fps=args.fps,
                      info=info)
-    what = {"png": "PNG frames", "gif": "GIF", "mp4": f"mp4, fourcc {info.get('fourcc')}"}[kind]
+    codec = ("H.264" if info.get("fourcc") in ("avc1", "H264") else
+             f"MPEG-4 part 2 (fourcc {info.get('fourcc')}; pip install 'ev3dgs[video]' for H.264)")
+    what = {"png": "PNG frames", "gif": "GIF", "mp4": f"mp4, {codec}"}[kind]
     _say(args, f"rendered {n} frames ({W}x{H}, {what}) on an orbit around {source} -> {args.out}")
     return 0
 

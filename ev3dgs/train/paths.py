@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..outputs import OutputError
 from ..geometry import look_at
 
 __all__ = ["orbit_path", "scene_target", "render_frames", "write_frames", "output_kind", "scaled_camera"]
@@ -221,7 +222,66 @@ def _count_video_frames(path: Path) -> int:
     return n
 
 
+def _ffmpeg():
+    """imageio-ffmpeg (the `video` extra: an ffmpeg build with libx264), or None."""
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        return None
+    return imageio_ffmpeg
+
+
+def _write_h264(ffmpeg, frames, tmp: Path, fps: float, info: dict) -> int:
+    """H.264 (libx264, yuv420p: what browsers and players decode) through ffmpeg; odd sizes are padded by one
+    edge row/column, as yuv420p needs even ones."""
+    gen, size, n = None, None, 0
+    try:
+        for i, frame in enumerate(frames):
+            rgb = _check_frame(frame, i, size)[..., ::-1]
+            size = rgb.shape[:2]
+            h, w = size[0] + size[0] % 2, size[1] + size[1] % 2
+            if (h, w) != size:
+                rgb = np.pad(rgb, ((0, h - size[0]), (0, w - size[1]), (0, 0)), mode="edge")
+            if gen is None:
+                gen = ffmpeg.write_frames(str(tmp), (w, h), fps=float(fps), codec="libx264", pix_fmt_in="rgb24",
+                                          pix_fmt_out="yuv420p", macro_block_size=1, quality=None,
+                                          output_params=["-crf", "18"], ffmpeg_log_level="quiet")
+                gen.send(None)
+            gen.send(np.ascontiguousarray(rgb).tobytes())
+            n += 1
+        if gen is None:
+            raise InputError("no frames to write")
+        g, gen = gen, None
+        g.close()             # ffmpeg writes the trailer and exits; a failure raises here
+    except (OSError, RuntimeError) as e:    # ffmpeg could not write: one line, with the reason when we can tell
+        raise OutputError(f"cannot write {tmp.parent / tmp.name}: {_write_failure_reason(tmp, e)}") from None
+    finally:
+        if gen is not None:
+            with contextlib.suppress(Exception):
+                gen.close()
+    info["fourcc"] = "avc1"
+    info["encoder"] = "libx264 (imageio-ffmpeg)"
+    return n
+
+
+def _write_failure_reason(path: Path, e: BaseException) -> str:
+    """Why a child process (ffmpeg) failed to write `path`: a full disk when the folder has no room left,
+    else its own words."""
+    import errno
+    import shutil
+
+    try:
+        if shutil.disk_usage(path.parent).free < (1 << 20):
+            return f"{os.strerror(errno.ENOSPC)} (ENOSPC)"
+    except OSError:
+        pass
+    return "ffmpeg stopped (" + (" ".join(str(e).split())[:200] or type(e).__name__) + ")"
+
+
 def _write_mp4(frames, tmp: Path, fps: float, info: dict) -> int:
+    ffmpeg = _ffmpeg()
+    if ffmpeg is not None:
+        return _write_h264(ffmpeg, frames, tmp, fps, info)
     writer, size, n = None, None, 0
     try:
         for i, frame in enumerate(frames):
