@@ -48,10 +48,20 @@ def test_render_to_a_full_disk_leaves_nothing_under_the_final_name(trained, full
     assert _leftovers(full_disk) == [], _leftovers(full_disk)
 
 
-def test_export_dataset_to_a_full_disk(scene, full_disk, capfd):  # noqa: F811
-    assert cli.main(["export-dataset", scene, "--format", "e2nerf", "--out", str(full_disk / "e2"), "--quiet"]) == 2
-    _one_line(capfd)
-    assert not (full_disk / "e2").exists() or _leftovers(full_disk / "e2") == []
+@pytest.mark.parametrize("fmt", ["e2nerf", "events-h5", "aedat4", "transforms"])
+@pytest.mark.parametrize("free_kb", [4, 12])
+def test_export_dataset_to_a_full_disk(scene, full_disk, capfd, fmt, free_kb):  # noqa: F811
+    """In a child process: a write failing inside HDF5 used to end in a segfault (exit 139) at a later close."""
+    import sys
+
+    (full_disk / "filler").write_bytes(b"\0" * ((24 - free_kb) << 10))
+    code = ("import sys; from ev3dgs import outputs; outputs._check_space = lambda *a, **k: None; "
+            "from ev3dgs.cli.main import main; sys.exit(main(sys.argv[1:]))")
+    r = subprocess.run([sys.executable, "-c", code, "export-dataset", scene, "--format", fmt, "--out",
+                        str(full_disk / "ds"), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, r.stderr[-2000:]
+    assert _leftovers(full_disk) == ["filler"]
 
 
 def test_render_cache_entry_on_a_full_disk_is_one_error_and_nothing_more(full_disk, capfd, monkeypatch):

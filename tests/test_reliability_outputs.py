@@ -227,8 +227,9 @@ def test_outputs_in_the_wrong_place(npz, tmp_path, capsys):
         (sim_cli, ["events", str(npz), "--out", str(a_dir)], "is a folder"),
         (sim_cli, ["events", str(npz), "--out", "/sys/ev.h5"], "/sys"),
         (sim_cli, ["make-dataset", "--scene", "lego", "--quick", "--out", str(a_dir)], "is a folder"),
-        (sim_cli, ["make-dataset", "--scene", "lego", "--quick", "--out", str(tmp_path / "no" / "x.h5")],
-         "does not exist"),
+        # a missing folder is made (as for every command); one that cannot be, under a file, is refused
+        (sim_cli, ["make-dataset", "--scene", "lego", "--quick", "--out", str(existing_file / "no" / "x.h5")],
+         "is not a folder"),
         (ingest_cli, ["info", str(tmp_path / "missing.aedat4")], "no such file"),
         (ingest_cli, ["info", str(a_dir)], "is a folder"),
         (ingest_cli, ["davis", str(tmp_path / "missing.aedat4"), "--out", str(tmp_path / "o.h5")], "no such file"),

@@ -104,3 +104,15 @@ def test_a_damaged_chunk_is_found_by_read_data(scene_copy, dataset):
         schema.validate(scene_copy)                          # the structure is intact: the quick check passes
     with pytest.raises(SchemaError, match=f"^{dataset}: rows 0..\\d+ cannot be read"):
         schema.validate(scene_copy, read_data=True)
+
+
+def test_train_refuses_a_damaged_chunk_before_training(scene_copy, tmp_path, capsys):
+    """/test/images is read only by eval: a damaged chunk there must stop `ev3dgs train` at the start, not
+    surface after the training."""
+    from ev3dgs.cli import main as cli
+
+    _damage_chunk(scene_copy, "/test/images")
+    rc = cli.main(["train", str(scene_copy), "--out", str(tmp_path / "run"), "--iterations", "5", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error: /test/images: rows 0..") and err.count("\n") == 1, err
+    assert not (tmp_path / "run" / "model.pt").exists()

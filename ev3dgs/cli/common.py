@@ -115,8 +115,7 @@ def write_atomic(path: str | Path, data: bytes) -> None:
     from ..outputs import atomic_path, remove_stale_temps
 
     path = Path(path)
-    if not path.parent.exists():
-        raise Ev3dgsError(f"output folder does not exist: {path.parent}")
+    path.parent.mkdir(parents=True, exist_ok=True)   # OSError (read-only, no space) -> one line from run()
     remove_stale_temps(path.parent, path.name)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:

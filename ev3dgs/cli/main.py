@@ -38,6 +38,15 @@ def _check_train(args) -> None:
     check_output_dir(args.out, 7 * per_gaussian * max(1, args.init_points))
     for name in ("ckpt.pt", "model.pt", "config.json"):
         remove_stale_temps(args.out, name)
+    import warnings
+
+    from .. import schema
+
+    # every byte of the scene read once now: a damaged chunk in /test or /train/sharp (read only by eval and
+    # export-dataset) fails before the training, not after it; the trainer repeats the warnings itself
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        schema.validate(args.scene, read_data=True, warn=False)
 
 
 _UNSET = object()

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..event_file import EventFile
+from ..outputs import H5Sink
 from .common import image_width, progress, write_png
 from .notes import sensor_lines
 
@@ -43,6 +44,36 @@ def _t_offset(sc, es: EventFile) -> int:
     return (min(starts) // 1000) * 1000 if starts else 0
 
 
+def _write_events(sink, es, E: int, off: int, n_ms: int, sc, W: int, H: int, quiet: bool) -> None:
+    with h5py.File(sink, "w") as f:
+        g = f.create_group("events")
+        chunks = (max(1, min(_CHUNK_ROWS, E)),)
+        ds = {n: g.create_dataset(n, shape=(E,), maxshape=(None,), dtype=dt, chunks=chunks, **_GZIP)
+              for n, dt in (("x", np.uint16), ("y", np.uint16), ("t", np.uint32), ("p", np.uint8))}
+        ms_to_idx = np.full(n_ms, E, np.uint64)
+        bar = progress(E, "events-h5", quiet)
+        start, next_ms = 0, 0
+        for ev in es.blocks():
+            rel = ev.t - off
+            j = start + len(ev)
+            ds["x"][start:j], ds["y"][start:j] = ev.x, ev.y
+            ds["t"][start:j] = rel.astype(np.uint32)
+            ds["p"][start:j] = (ev.p > 0).astype(np.uint8)
+            # ms m with 1000 m <= this block's last t: its first event at or after 1000 m lies in this block
+            # (an earlier one would have settled m with an earlier block), so each m is set exactly once
+            last_ms = int(rel[-1]) // 1000
+            ms = np.arange(next_ms, last_ms + 1, dtype=np.int64)
+            ms_to_idx[next_ms:last_ms + 1] = start + np.searchsorted(rel, ms * 1000, side="left")
+            next_ms, start = max(next_ms, last_ms + 1), j
+            bar.update(len(ev))
+            sink.check()
+        bar.close()
+        f.create_dataset("ms_to_idx", data=ms_to_idx)
+        f.create_dataset("t_offset", data=np.int64(off))
+        f.attrs.update(width=W, height=H, pos_threshold=sc.sensor.pos_threshold,
+                       neg_threshold=sc.sensor.neg_threshold, source="ev3dgs export-dataset")
+
+
 def export(sc, ev_path: str, stage: Path, quiet: bool = False) -> dict:
     W, H = sc.camera.width, sc.camera.height
     with EventFile(ev_path) as es:
@@ -53,32 +84,15 @@ def export(sc, ev_path: str, stage: Path, quiet: bool = False) -> dict:
             raise InputError(f"the events span {t_last} us, more than uint32 microseconds (71 min) hold: "
                              "DSEC's layout cannot store them")
         n_ms = t_last // 1000 + 2
-        with h5py.File(stage / "events.h5", "w") as f:
-            g = f.create_group("events")
-            chunks = (max(1, min(_CHUNK_ROWS, E)),)
-            ds = {n: g.create_dataset(n, shape=(E,), maxshape=(None,), dtype=dt, chunks=chunks, **_GZIP)
-                  for n, dt in (("x", np.uint16), ("y", np.uint16), ("t", np.uint32), ("p", np.uint8))}
-            ms_to_idx = np.full(n_ms, E, np.uint64)
-            bar = progress(E, "events-h5", quiet)
-            start, next_ms = 0, 0
-            for ev in es.blocks():
-                rel = ev.t - off
-                j = start + len(ev)
-                ds["x"][start:j], ds["y"][start:j] = ev.x, ev.y
-                ds["t"][start:j] = rel.astype(np.uint32)
-                ds["p"][start:j] = (ev.p > 0).astype(np.uint8)
-                # ms m with 1000 m <= this block's last t: its first event at or after 1000 m lies in this block
-                # (an earlier one would have settled m with an earlier block), so each m is set exactly once
-                last_ms = int(rel[-1]) // 1000
-                ms = np.arange(next_ms, last_ms + 1, dtype=np.int64)
-                ms_to_idx[next_ms:last_ms + 1] = start + np.searchsorted(rel, ms * 1000, side="left")
-                next_ms, start = max(next_ms, last_ms + 1), j
-                bar.update(len(ev))
-            bar.close()
-            f.create_dataset("ms_to_idx", data=ms_to_idx)
-            f.create_dataset("t_offset", data=np.int64(off))
-            f.attrs.update(width=W, height=H, pos_threshold=sc.sensor.pos_threshold,
-                           neg_threshold=sc.sensor.neg_threshold, source="ev3dgs export-dataset")
+        # HDF5 writes through H5Sink, never straight to disk: a write that fails inside HDF5 (a full disk)
+        # makes a later close segfault; the sink keeps such writes, and check() raises between blocks
+        sink = H5Sink(stage / "events.h5")
+        try:
+            _write_events(sink, es, E, off, n_ms, sc, W, H, quiet)
+            sink.fsync()
+            sink.check()
+        finally:
+            sink.close()
     N = len(sc.train) if sc.train is not None else 0
     if N:
         img = stage / "images"

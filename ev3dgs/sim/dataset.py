@@ -180,7 +180,11 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
     jobs.update({f"test_{j:04d}": pose[None] for j, pose in enumerate(novel_view_poses(render, seed))})
     cache = out.parent / f".{out.stem}.cache-{_cache_key(spec, render, blend, seed)}"
     # before any rendering: the output can be written, with room for the cache and the file
-    check_output_file(out, _estimate_bytes(render, cache), force=force)
+    check_output_file(out, _estimate_bytes(render, cache), force=force, make_parents=True)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)   # a missing output folder is made, as every command does
+    except OSError as e:
+        raise OutputError(f"cannot create the output folder {os_error_message(e, out.parent)}", e.errno) from None
     remove_stale_temps(out.parent, out.name)   # left by a killed run: the scene file's temporary
     try:
         cache.mkdir(exist_ok=True)

@@ -1,4 +1,4 @@
-"""Where Blender render workers run: a local process pool, or Ray actors on this machine or a cluster.
+"""Where Blender render workers run: a local process pool, or Ray actors on the local machine or a cluster.
 
 An executor takes the worker init kwargs and the jobs still to render (key -> poses) and yields
 `(key, frames float32 (n, H, W, 3), readback poses (n, 4, 4), scene info dict)` as views finish, in any order.
@@ -35,7 +35,7 @@ class RenderFailed(Exception):
 
 
 class LocalExecutor:
-    """`workers` spawned Blender processes on this machine (concurrent.futures.ProcessPoolExecutor)."""
+    """`workers` spawned Blender processes on the local machine (concurrent.futures.ProcessPoolExecutor)."""
 
     def __init__(self, workers: int = 1):
         self.workers = workers

@@ -121,7 +121,7 @@ def check_outputs(out, force: bool = True) -> None:
     from ..outputs import check_output_file
 
     for option, path in outputs(out).items():
-        check_output_file(path, option=option, force=force)
+        check_output_file(path, option=option, force=force, make_parents=True)
 
 
 def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, exposure_ms: float = 50,
@@ -134,11 +134,10 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
     out = Path(out)
     if out.suffix != ".aedat4":
         raise InputError(f"the recording must end in .aedat4, got {out}")
-    if not out.parent.is_dir():
-        raise InputError(f"output folder does not exist: {out.parent}")
     if not (seconds > 0 and fps > 0 and exposure_ms > 0 and render_rate_hz > 0 and workers >= 1):
         raise InputError("seconds, fps, exposure_ms, render_rate_hz must be > 0 and workers >= 1")
     check_outputs(out, force)
+    out.parent.mkdir(parents=True, exist_ok=True)   # a missing output folder is made, as every command does
     spec = load_scene(str(scene_name_or_toml))
     if spec.builder is None:
         raise InputError(f"scene {spec.name!r} names no builder")

@@ -109,23 +109,44 @@ class Aedat2Reader(RecordingReader):
     ALIGN_INTACT = 0.99                      # at the header's end and this ordered: intact, nothing to search
     ALIGN_MARGIN = 0.02                      # another offset must beat the header's end by this much
 
-    @staticmethod
-    def _in_order(raw: bytes) -> float:
-        t = np.frombuffer(raw[:len(raw) // 8 * 8], ">u4")[1::2].astype(np.int64)
-        return float(np.mean(np.diff(t) >= 0)) if len(t) > 1 else 1.0
+    def _in_order(self, raw: bytes) -> float:
+        """How plausible `raw` is as records: the fraction of timestamp steps in order, times (for a DAVIS chip
+        the header names) the fraction of DVS addresses inside the sensor. A shifted read mixes address bytes
+        into the timestamps; where an address's low byte is always 0 its shifted timestamps stay in order, but
+        then the timestamp bytes land in the address, whose x and y fall outside the sensor."""
+        rec = np.frombuffer(raw[:len(raw) // 8 * 8], ">u4").reshape(-1, 2)
+        t = rec[:, 1].astype(np.int64)
+        ordered = float(np.mean(np.diff(t) >= 0)) if len(t) > 1 else 1.0
+        chip = getattr(self, "_header_chip", None)
+        if chip is None or chip.layout != "davis":
+            return ordered
+        a = rec[:, 0]
+        dvs = (a >> 31) == 0
+        if not dvs.any():
+            return ordered
+        inside = (((a >> 12) & 0x3FF) < chip.size[0]) & (((a >> 22) & 0x1FF) < chip.size[1])
+        return ordered * float(np.mean(inside[dvs]))
 
     def _align(self) -> None:
         """Bytes inserted or removed where the header meets the data shift every record: its timestamps then
         decode as noise. Keep the header's end when its records are in time order; else take the offset of
         0-7 bytes whose records are (a warning; strict: an error), and refuse when none is."""
+        try:
+            self._header_chip = jaer.chip_from_header(self.header, self.path)[1]
+        except AedatError:       # an unsupported chip is refused with its own message later
+            self._header_chip = None
         self._f.seek(self.data_start)
         raw = self._f.read(8 * self.ALIGN_RECORDS + 8)
-        if len(raw) < 8 * self.ALIGN_MIN_RECORDS or self._in_order(raw) >= self.ALIGN_INTACT:
+        tail = (self.file_size - self.data_start) % 8
+        if len(raw) < 8 * self.ALIGN_MIN_RECORDS or (not tail and self._in_order(raw) >= self.ALIGN_INTACT):
             return
         # a shifted record's 'timestamp' mixes address bytes into it: measured 49-95 % of steps in order at the
         # seven wrong offsets of a DAVIS346 file, 99.7 % at the right one
         scores = [self._in_order(raw[k:]) for k in range(8)]
         best = max(range(8), key=lambda k: scores[k])
+        if tail and scores[tail] >= self.ALIGN_ORDERED and scores[tail] >= scores[best] - self.ALIGN_MARGIN \
+                and scores[tail] >= scores[0] + self.ALIGN_MARGIN:
+            best = tail          # the file's end agrees: bytes were inserted or removed at its start
         if best == 0 or scores[best] < scores[0] + self.ALIGN_MARGIN:
             if scores[0] >= self.ALIGN_ORDERED:
                 return
