@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml setup.py ev3dgs/io/aedat4/_fast.c
 	# resolves torch==2.13.0 to a CUDA build, TORCH_PIP_ARGS='--index-url https://download.pytorch.org/whl/cpu'
 	# gets the CPU build instead.
 	$(BIN)/pip install torch==2.13.0 $(TORCH_PIP_ARGS)
-	$(BIN)/pip install -e '.[blender,view,video,docs,dev]'
+	$(BIN)/pip install -e '.[blender,view,video,docs,cuda,dev]'
 	# the reference LPIPS package, for tests/test_lpips.py only; --no-deps: its torchvision would replace our torch
 	$(BIN)/pip install --no-deps lpips==0.1.4
 	touch $(STAMP)

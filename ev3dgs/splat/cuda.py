@@ -1,33 +1,73 @@
-"""The `cuda` backend: gsplat's CUDA rasterizer behind our conventions (an optional extra:
-`pip install ev3dgs[cuda]`). gsplat puts pixel centres at +0.5, we put them at integer coordinates, so
-the principal point is shifted by half a pixel on the way in. Its radius rule (3.33 sigma) differs from
-ours (the exact, opacity-aware 1/255 bound), which changes nothing visible: every pixel it drops has
-alpha < 1/255 in both. A parity test against `reference` runs whenever CUDA is available.
+"""The `cuda` backend: gsplat's CUDA kernels behind our conventions (an optional extra, `pip install ev3dgs[cuda]`,
+tested against gsplat 1.5.3).
+
+The same pipeline as gsplat's `rasterization()` (projection, SH, tile intersection, rasterization), called
+step by step so that ``meta["means2d"]`` is the tensor the rasterizer reads: its ``.grad`` (after
+``retain_grad()``) is the screen-space gradient densification needs. (Taking ``meta["means2d"][0]`` from
+`rasterization()` gives a view that nothing downstream uses, whose ``.grad`` stays None.)
+
+Convention differences from the `reference` backend, each pinned by tests/test_gsplat_parity.py on the CPU
+(gsplat's torch reference functions fed the exact arguments built here) and tests marked ``gpu``:
+
+* pixel centres: gsplat evaluates pixel (x, y) at (x + 0.5, y + 0.5), we at (x, y): the principal point is
+  shifted by +0.5 on the way in, and the projected means shifted back by -0.5 for ``meta["means2d"]``;
+* radius: gsplat's per-axis box ``ceil(min(3.33, sqrt(2 ln(255 o))) * sqrt(cov_xx or cov_yy))`` is inside our
+  square (exact opacity-aware bound over the largest eigenvalue); both contain every pixel with
+  alpha >= 1/255, so the images agree; ``meta["radii"]`` is the larger axis, and a Gaussian whose box misses
+  the image while our square touches it (it colours no pixel in either) is culled here and not in `reference`;
+* alpha cap: gsplat's kernel caps alpha at 0.999, ours at 0.99 (and it stops when the transmittance would
+  reach <= 1e-4, ours < 1e-4): pixels where a Gaussian's opacity exceeds 0.99 differ;
+* culling: near/far keep near <= z <= far (ours near < z < far); a zero quaternion is NaN in gsplat (identity
+  in ours); non-finite rows are not culled by gsplat;
+* depth (render_mode "RGB+D"): the camera z appended as a colour channel with a zero background, i.e. the
+  alpha-weighted depth (gsplat's "RGB+D"), not gsplat's "RGB+ED" (that divided by alpha);
+* unpacked (``packed=False``), tile size 16, classic (no antialiasing compensation), float32 only; K gets no
+  gradient (the view matrix does: camera gradients for --refine-poses).
 
 Not bitwise reproducible: gsplat's backward sums each Gaussian's gradient over pixels with float atomicAdd,
 whose order changes from run to run, so two CUDA runs with the same seed agree closely but not bit for bit
 (the CPU backends, `reference` and `cpu`, are bitwise reproducible for any thread count)."""
 from __future__ import annotations
 
+import math
+
 import torch
+
+TILE_SIZE = 16
 
 
 def rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, width, height, *, sh_degree,
-                       near_plane, far_plane, eps2d, background, render_mode):
-    from gsplat import rasterization as gs_rasterization
+                       near_plane, far_plane, eps2d, background, render_mode, ops=None):
+    """One camera (viewmat (4, 4)). ``ops``: a namespace with gsplat's `fully_fused_projection`,
+    `spherical_harmonics`, `isect_tiles`, `isect_offset_encode`, `rasterize_to_pixels` (default: gsplat itself;
+    the parity tests pass torch implementations)."""
+    if ops is None:
+        import gsplat as ops
 
-    Kg = K.clone()
-    Kg[0, 2] += 0.5
+    Kg = K.detach().clone()
+    Kg[0, 2] += 0.5  # gsplat's pixel centres are at +0.5
     Kg[1, 2] += 0.5
-    bg = None if background is None else background[None]
-    image, alpha, meta = gs_rasterization(
-        means, quats, scales, opacities, colors, viewmat[None], Kg[None], width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, packed=False,
-        backgrounds=bg, render_mode="RGB+ED" if render_mode == "RGB+D" else "RGB")
-    if render_mode == "RGB+D":  # gsplat's ED is normalised by alpha; ours is the accumulated depth
-        image = torch.cat([image[..., :-1], image[..., -1:] * alpha], dim=-1)
-    means2d = meta["means2d"][0]
-    out_meta = {"means2d": means2d, "radii": meta["radii"][0].max(dim=-1).values if meta["radii"].ndim == 3
-                else meta["radii"][0], "depths": meta["depths"][0], "conics": meta["conics"][0],
-                "width": width, "height": height, "n_cameras": 1}
-    return image[0], alpha[0], out_meta
+    radii, means2d_g, depths, conics, _ = ops.fully_fused_projection(
+        means, None, quats, scales, viewmat[None], Kg[None], width, height, eps2d=eps2d, near_plane=near_plane,
+        far_plane=far_plane, packed=False, opacities=opacities)
+    means2d = means2d_g[0] - 0.5  # our pixel convention; the rasterizer below reads exactly this tensor
+    if colors.ndim == 3:  # SH coefficients (N, K, 3), evaluated towards the camera centre
+        campos = torch.linalg.inv(viewmat)[:3, 3]
+        colors = ops.spherical_harmonics(sh_degree, means - campos, colors, masks=(radii[0] > 0).all(dim=-1))
+        colors = torch.clamp_min(colors + 0.5, 0.0)
+    bg = background
+    if render_mode == "RGB+D":  # the alpha-weighted camera z, zero background
+        colors = torch.cat([colors, depths[0, :, None].to(colors.dtype)], dim=-1)
+        if bg is not None:
+            bg = torch.cat([bg, bg.new_zeros(1)])
+    tiles_x, tiles_y = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
+    m2d = (means2d + 0.5)[None]
+    _, isect_ids, flatten_ids = ops.isect_tiles(m2d, radii, depths, TILE_SIZE, tiles_x, tiles_y, packed=False,
+                                                n_images=1)
+    offsets = ops.isect_offset_encode(isect_ids, 1, tiles_x, tiles_y).reshape(1, tiles_y, tiles_x)
+    image, alpha = ops.rasterize_to_pixels(m2d, conics, colors[None], opacities[None], width, height, TILE_SIZE,
+                                           offsets, flatten_ids, backgrounds=None if bg is None else bg[None],
+                                           packed=False)
+    meta = {"means2d": means2d, "radii": radii[0].max(dim=-1).values, "depths": depths[0], "conics": conics[0],
+            "width": width, "height": height, "n_cameras": 1}
+    return image[0], alpha[0], meta
