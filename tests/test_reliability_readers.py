@@ -294,3 +294,22 @@ def test_aedat2_data_with_no_plausible_alignment_is_refused(tmp_path):
     p.write_bytes(A2_HEADER + rng.integers(0, 256, 8 * 5000, dtype=np.uint8).tobytes())
     with pytest.raises(AedatError, match="no 8-byte record alignment"):
         _a2_events(p)
+
+
+@pytest.mark.parametrize("rec,bit", [(338, 28), (338, 26), (348, 29), (200, 31)])
+def test_aedat2_a_cleared_bit_after_real_gaps_drops_that_record_only(tmp_path, rec, bit):
+    """The jAER fixture's events come up to 33 s apart (real forward steps). One record's timestamp with a high
+    bit flipped (cleared: it falls back below records seconds before it): only that record goes, never the
+    run of real steps before it (which held the file's only APS frame and its IMU samples)."""
+    data, _ = build_aedat2()
+    good = tmp_path / "good.aedat"
+    good.write_bytes(data)
+    (want_t, _), _ = _a2_events(good)
+    head = data.index(b"#End Of ASCII Header\r\n") + len(b"#End Of ASCII Header\r\n")
+    b = bytearray(data)
+    b[head + 8 * rec + 4 + (3 - bit // 8)] ^= 1 << (bit % 8)    # big-endian timestamp word of record `rec`
+    p = tmp_path / "flip.aedat"
+    p.write_bytes(bytes(b))
+    (t, _), warns = _a2_events(p)
+    assert not any("timestamp reset" in w for w in warns)
+    assert len(want_t) - len(t) <= 1 and set(t.tolist()) <= set(want_t.tolist()), (len(t), len(want_t), warns)

@@ -220,6 +220,7 @@ class Wrap32:
     RESET_MAX = 1 << 24                      # ~16.8 s: a reset restarts the clock at 0
     RESET_MIN_DROP = 1000                    # smaller steps back are jitter, not resets
     SPIKE_MIN = 1 << 20                      # ~1 s forward: checked for a return (a spike) within MAX_RUN
+    SPIKE_HOLD = 8                           # records after the return that must stay below the spike
 
     def __init__(self) -> None:
         self.prev: int | None = None         # raw value of the last kept record
@@ -240,7 +241,7 @@ class Wrap32:
         d = np.diff(ext, prepend=start)
         step = np.zeros(n, np.int64)
         resume = k0
-        cand = ((np.abs(d[:n]) > self.JUMP) | (d[:n] > self.SPIKE_MIN)
+        cand = ((np.abs(d[:n]) > self.JUMP) | (d[:n] >= self.SPIKE_MIN)
                 | ((d[:n] < -self.RESET_MIN_DROP) & (ext[:n] < self.RESET_MAX)))
         for j in np.flatnonzero(cand).tolist():
             if j < resume:
@@ -251,6 +252,13 @@ class Wrap32:
             # its height (a recording that pauses and goes on never comes back below where it jumped to)
             limit = self.JUMP if d[j] < 0 else min(self.JUMP, int(d[j]) // 2)
             back = np.flatnonzero((win >= 0) & (win < limit))
+            if back.size and 0 < d[j] <= self.JUMP:
+                # a spike of one flipped bit: the clock must stay back below it after the return, else the
+                # 'return' is itself a bad record (a bit cleared) and the forward step was real
+                k = j + 1 + int(back[0])
+                after = ext[k:k + self.SPIKE_HOLD]      # as many as the run it would drop, up to SPIKE_HOLD
+                if len(after) < min(self.SPIKE_HOLD, k - j) or not ((after >= a) & (after < ext[j])).all():
+                    back = back[:0]
             if back.size:                                  # jumps away and comes back: outlier run
                 k = j + 1 + int(back[0])
                 keep[j:min(k, n)] = False
@@ -262,6 +270,10 @@ class Wrap32:
                 wrap = 1 << 32 if a >= 1 << 31 else 1 << 31
                 if 0 <= int(ext[j]) + wrap - a < self.WRAP_GAP:
                     step[j] = wrap
+                elif self.prev is None and j < self.SPIKE_HOLD and k0 == 0 and bool(keep[:j].all()) \
+                        and bool((np.diff(ext[j:j + self.SPIKE_HOLD]) >= 0).all()):
+                    keep[:j] = False                           # the file's first records alone, far ahead of
+                    notes.append(("outlier", 0, j))            # an in-order rest: outliers, not a clock reset
                 elif int(ext[j]) < self.RESET_MAX:
                     step[j] = -(self.offset + int(step[:j].sum()))   # the clock restarts: t = raw value again
                     notes.append(("reset", j, (a, int(ext[j]))))
