@@ -86,6 +86,16 @@ def _e2nerf_folder(tmp) -> Path:
 
 
 # name: (main, argv builder (tmp, out) -> args, output name, is a folder, (module, attribute) of the expensive work)
+def _calib_input(tmp: Path) -> Path:
+    """A short recording with APS frames and events (no Blender), made once per test folder."""
+    from ev3dgs.calib.synth import make_recording
+
+    p = tmp / "in.aedat4"
+    if not p.exists():
+        make_recording(p, seed=0, seconds=0.5)
+    return p
+
+
 COMMANDS = {
     "sim events": (sim_cli.main, lambda tmp, out: (_events_input(tmp), ["events", str(tmp / "frames.npz"),
                                                                           "--out", str(out)])[1],
@@ -109,6 +119,10 @@ COMMANDS = {
     "export-dataset": (ev3dgs_cli.main, lambda tmp, out: ["export-dataset", str(_scene(tmp)), "--format",
                                                           "events-h5", "--out", str(out)],
                        "export", True, ("ev3dgs.schema", "read")),
+    "sim calibrate": (sim_cli.main, lambda tmp, out: ["calibrate", str(_calib_input(tmp)), "--out", str(out)],
+                      "s.toml", False, ("ev3dgs.calib.report", "calibrate_recording")),
+    "sim compare": (sim_cli.main, lambda tmp, out: ["compare", str(_calib_input(tmp)), "--out", str(out)],
+                    "report", True, ("ev3dgs.calib.compare", "compare_recording")),
 }
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import sys
 
+from .calibrate import add_calibrate_parsers
 from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 PREFILTERS = ("accurate", "fast", "none")  # ev3dgs.sim.scenes.PREFILTERS, without importing the simulator here
@@ -20,6 +21,55 @@ def require_blender(command: str) -> None:
         major, minor = sys.version_info[:2]
         running = "" if (major, minor) == (3, 11) else f"; Python {major}.{minor} is running"
         raise ConfigError(f"{command} renders with Blender, which is not installed: {BLENDER_EXTRA}{running}")
+
+
+def with_sensor_config(spec, config_path):
+    """The scene with a sensor TOML (e.g. from `ev3dgs-sim calibrate`) in place of its [sensor] table: each
+    table the TOML has ([dvs] with its effect tables, [isp], [sensor_noise]) replaces the scene's; the ones it
+    lacks stay the scene's. Only the effects the resulting [dvs] names run."""
+    import dataclasses
+
+    from ..config import load_toml
+    from ..sim.config import load_sim_config
+
+    if config_path is None:
+        return spec
+    given = load_toml(config_path)
+    cfg = load_sim_config(config_path)
+    return dataclasses.replace(spec, sensor=dataclasses.replace(
+        spec.sensor, **{k: getattr(cfg, k) for k in ("dvs", "isp", "sensor_noise") if k in given}))
+
+
+def _toml_value(v) -> str:
+    import json
+
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _toml(d: dict, prefix: str = "") -> str:
+    """A plain nested dict (ev3dgs.config.to_dict) as TOML: scalars first, then one table per sub-dict."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+    for k, v in d.items():
+        if isinstance(v, dict):
+            name = f"{prefix}{k}"
+            body = _toml(v, name + ".")
+            lines += ["", f"[{name}]", body] if body else ["", f"[{name}]"]
+    return "\n".join(lines)
+
+
+def scene_toml(spec) -> str:
+    """A SceneSpec as a scene TOML that load_scene reads back to the same spec."""
+    from ..config import to_dict
+
+    return _toml(to_dict(spec)) + "\n"
 
 
 def _events(args) -> int:
@@ -68,7 +118,7 @@ def _blur(args) -> int:
     suffix = "." + args.out.rsplit(".", 1)[-1].lower() if "." in args.out else ""
     if suffix not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
         raise InputError(f"--out must end in .png, .jpg or .tif, got {args.out!r}")
-    check_output_file(args.out, force=args.force)
+    check_output_file(args.out, force=args.force, make_parents=True)
     cfg = load_sim_config(args.config)
     frames, _ = load_frames_npz(args.input, need_t=False)
     if frames.ndim == 3:
@@ -100,8 +150,8 @@ def _make_dataset(args) -> int:
     from ..sim.dataset import make_dataset
     from ..sim.scenes import load_scene, resolve_render
 
-    check_output_file(args.out, force=args.force)   # before loading the scene and rendering
-    spec = load_scene(args.scene)
+    check_output_file(args.out, force=args.force, make_parents=True)   # before loading the scene and rendering
+    spec = with_sensor_config(load_scene(args.scene), args.config)
     w, h = args.size if args.size else (None, None)
     render = resolve_render(spec, args.quick, width=w, height=h, views=args.views, test_views=args.test_views,
                             subframes=args.subframes, exposure_ms=args.exposure_ms, samples=args.samples,
@@ -125,11 +175,26 @@ def _record(args) -> int:
     from ..sim.record import record
 
     w, h = args.size if args.size else (346, 260)
+    scene = args.scene
+    tmp = None
+    if args.config:   # the scene with the sensor TOML in place of its [sensor] tables, as a scene file
+        import tempfile
+
+        from ..sim.scenes import load_scene
+
+        spec = with_sensor_config(load_scene(args.scene), args.config)
+        tmp = tempfile.TemporaryDirectory(prefix="ev3dgs-record-")
+        scene = str(Path(tmp.name) / f"{spec.name}.toml")
+        Path(scene).write_text(scene_toml(spec), encoding="utf-8")
     # record checks its three outputs (the .aedat4, its .trajectory.npz and .calibration.toml) before rendering
-    info = record(args.scene, args.out, seconds=args.seconds, fps=args.fps, exposure_ms=args.exposure_ms,
-                  render_rate_hz=args.render_rate, width=w, height=h, samples=args.samples, seed=args.seed,
-                  workers=args.workers, quiet=args.quiet, denoise_prefilter=args.denoise_prefilter,
-                  force=args.force)
+    try:
+        info = record(scene, args.out, seconds=args.seconds, fps=args.fps, exposure_ms=args.exposure_ms,
+                      render_rate_hz=args.render_rate, width=w, height=h, samples=args.samples, seed=args.seed,
+                      workers=args.workers, quiet=args.quiet, denoise_prefilter=args.denoise_prefilter,
+                      force=args.force)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
     if not args.quiet:
         print(f"{info['frames']} APS frames, {info['events']} events, {info['imu']} IMU samples over "
               f"{args.seconds} s -> {args.out} (+ ground truth {Path(info['trajectory']).name} and "
@@ -174,6 +239,9 @@ def build_parser():
     m.add_argument("--blend", help="render this .blend (an object near the origin) with our cameras "
                                        "(default: none, the scene's builder makes the geometry)")
     m.add_argument("--out", required=True, help="output scene .h5 (written atomically)")
+    m.add_argument("--config", help="sensor TOML ([dvs] and effect tables, [isp], [sensor_noise]), e.g. from "
+                                    "`ev3dgs-sim calibrate`: each table it has replaces the scene's [sensor] one "
+                                    "(default: none, the scene's sensor)")
     m.add_argument("--views", type=int, help="training views (default: the scene's, 24 for built-ins; 4 with --quick)")
     m.add_argument("--test-views", type=int,
                    help="sharp novel test views (default: the scene's, 6 for built-ins; 2 with --quick)")
@@ -209,6 +277,9 @@ def build_parser():
     r.add_argument("--scene", required=True, help="built-in scene name or a scene .toml")
     r.add_argument("--out", required=True, help="output .aedat4; the ground truth goes beside it as "
                                                 "NAME.trajectory.npz and NAME.calibration.toml (no default)")
+    r.add_argument("--config", help="sensor TOML ([dvs] and effect tables, [isp], [sensor_noise]), e.g. from "
+                                    "`ev3dgs-sim calibrate`: each table it has replaces the scene's [sensor] one "
+                                    "(default: none, the scene's sensor)")
     r.add_argument("--seconds", type=finite_float, default=2.0,
                    help="length of the recording in seconds (default %(default)s s)")
     r.add_argument("--fps", type=finite_float, default=10.0, help="APS frames per second (default %(default)s)")
@@ -221,13 +292,14 @@ def build_parser():
     r.add_argument("--denoise-prefilter", choices=PREFILTERS,
                    help="OpenImageDenoise's albedo/normal guide prefilter (default: the scene's, accurate for "
                         "built-ins; at 346x260 '--samples 16 --denoise-prefilter fast' renders ~1.5x faster and "
-                        "closer to a converged render, see the README's render study)")
+                        "closer to a converged render, see the render study in the docs: docs/studies.md)")
     r.add_argument("--workers", type=int, default=1, help="Blender processes rendering in parallel "
                                                          "(default %(default)s)")
     r.add_argument("--seed", type=int, default=0, help="random seed of the hand-held path and noise "
                                                       "(default %(default)s)")
     add_output_options(r)
     r.set_defaults(func=_record)
+    add_calibrate_parsers(sub)
     ls = sub.add_parser("list-scenes", help="the built-in scenes: names first, then descriptions")
     ls.set_defaults(func=_list_scenes)
     return p

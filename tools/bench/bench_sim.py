@@ -21,19 +21,15 @@ import time  # noqa: E402
 
 from ev3dgs.sim import DVSConfig, simulate_events  # noqa: E402
 from ev3dgs.sim.config import Leak, LowPass, Refractory, ShotNoise, ThresholdMismatch  # noqa: E402
+from ev3dgs.sim.presets import PRESETS  # noqa: E402
 from ev3dgs.sim.synthetic import moving_texture  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tools/: pareto.py
 from pareto import save_json  # noqa: E402
 
-# v2e's --dvs_params presets (v2e emulator.py set_dvs_params; reference/event-simulators.md section 1.2),
-# matched effect for effect. "clean" is the ideal sensor (no effects): the speed target's baseline.
-V2E_CLEAN = DVSConfig(threshold_mismatch=ThresholdMismatch(sigma=0.02))  # cutoff, leak, noise, refractory: 0
-V2E_NOISY = DVSConfig(
-    threshold_mismatch=ThresholdMismatch(sigma=0.05),
-    leak=Leak(rate_hz=0.1, rate_spread_decades=0.1, jitter_fraction=0.1),
-    shot_noise=ShotNoise(rate_hz=5.0),
-    lowpass=LowPass(cutoff_hz=30.0),
-)                                                                         # v2e's noisy preset: no refractory
+# v2e's --dvs_params presets, matched effect for effect (ev3dgs.sim.presets). "clean" is the ideal sensor
+# (no effects): the speed target's baseline.
+V2E_CLEAN = PRESETS["v2e-clean"].dvs   # mismatch 0.02; cutoff, leak, noise, refractory: 0
+V2E_NOISY = PRESETS["v2e-noisy"].dvs   # v2e's noisy preset: no refractory
 # every effect on: v2e's noisy preset plus a 500 us refractory period (v2e's CLI default)
 ALL_NOISE = DVSConfig(
     threshold_mismatch=ThresholdMismatch(sigma=0.05),

@@ -1,0 +1,373 @@
+"""Contrast thresholds, their pixel-to-pixel spread and the APS dark level, from frame pairs and event counts.
+
+Model. Between two exposure midpoints a pixel's log intensity changes by dL = log(I1 - dark) - log(I0 - dark);
+the change detector emits N_on ON and N_off OFF events with
+
+    dL = C_on N_on - C_off N_off + (d0 - d1)
+
+where d is the pixel's distance from its reference (|d| < one threshold). With a random reference phase the
+residual d0 - d1 has zero mean as long as the pixel keeps its direction, so summed over pixels and pairs
+
+    sum_up dL   = C_on sum_up N_on - C_off sum_up N_off        (pairs with dL > tau)
+    sum_down -dL = C_off sum_down N_off - C_on sum_down N_on   (pairs with dL < -tau)
+
+a 2x2 linear system for (C_on, C_off): a ratio of sums (zero-count pairs included, so that the estimate is
+unbiased whatever the distribution of changes), which the OFF events of an up pair (a reversal inside the
+frame interval) and the ON events of a down pair enter with the other threshold. A pair next to a pair that
+went the other way (before or after) is left out: after a reversal the pixel must first travel its dead band
+(up to C_on + C_off) and the residual no longer has zero mean; a turning point inside pair k shows as pair
+k-1 or k+1 going the other way, and the events say it directly: the pixel's last event before the pair and
+its last event inside it must have the pair's polarity (a turning point on a flat top that no frame pair
+resolves still shows there). Sub-frame wiggles that no frame sees are not caught: faster motion than the
+frame rate resolves biases the thresholds up.
+
+Robust: pixels whose summed residual lies more than 5 robust standard deviations out (hot pixels, flicker,
+pixels whose APS and DVS disagree) are dropped and the system solved again.
+
+Frame noise: it enters dL with zero mean (so not the sums), but it decides which pairs pass |dL| > tau; tau is
+4 standard deviations of dL predicted from the frame noise (measured on the quietest pixels of each intensity
+band) so that noise alone selects almost no pair, and at least 0.02. Under-exposed pixels (less than
+aps.UNDER_DN above the dark level) and saturated pixels are masked in every pair they touch.
+
+Dark level and log knee: the fitted thresholds must not depend on intensity. A wrong APS dark level bends
+log(I - dark) at the dark end only, and so does the DVS photoreceptor's own dark current (the simulator's
+lin-log knee, ev3dgs.logmap): so (dark, knee) is the point on a one-parameter grid (knees from 0.5 to 0.005 at
+dark 0, then dark levels at the default knee) that makes the thresholds fitted in three intensity bands
+(terciles) agree best. The two cannot be told apart from frames and counts alone: a knee above the default
+means the event pixels lose contrast at the dark end faster than the APS does.
+
+Mismatch: per-pixel thresholds from the first and the second half of the recording (time halves, so that
+their residual and frame noise are independent); the covariance over pixels of the two half estimates is the
+variance of the pixels' true thresholds (their noise does not correlate). The global ratio of sums is a
+count-weighted (harmonic) mean, C (1 - sigma^2 / C^2) to second order; it is corrected by + sigma^2 / C.
+
+Uncertainties: bootstrap over pixels (the dark level refitted in every resample).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+from .aps import Recording, last_polarity
+
+TAU_SIGMAS = 4.0
+TAU_MIN = 0.02
+MIN_EVENTS_HALF = 4       # a pixel's half-recording threshold needs this many events of that polarity
+MIN_MISMATCH_PIXELS = 30
+
+
+@dataclass
+class Value:
+    """An estimate and its bootstrap standard error; value None = not estimated (note says why)."""
+
+    value: float | None
+    se: float | None = None
+    note: str = ""
+
+
+@dataclass
+class ThresholdFit:
+    c_on: Value
+    c_off: Value
+    sigma: Value
+    sigma_on: Value
+    sigma_off: Value
+    dark: Value
+    knee: Value
+    frame_noise_dn: float
+    pixels: int
+    samples_up: int
+    samples_down: int
+    events_used: int
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def curve(self) -> tuple[float, float]:
+        """(dark DN, log knee) of the fit: the APS -> simulator intensity map and the simulator's log curve."""
+        from ..logmap import DEFAULT_LOG_KNEE
+
+        return float(self.dark.value), float(self.knee.value if self.knee.value is not None else DEFAULT_LOG_KNEE)
+
+
+def frame_noise(rec: Recording) -> tuple[np.ndarray, np.ndarray]:
+    """Temporal noise of the APS frames (DN) by intensity: (band centres DN, noise DN), measured on quiet
+    pixels (few events over the whole recording: the event sensor says which pixels saw no change): per pixel
+    the standard deviation over frames of the linearly detrended DN, per intensity band (6 quantile bands of
+    the quiet pixels) the median."""
+    from .aps import pixel_index
+
+    F = rec.frames.reshape(len(rec.frames), -1)
+    ok = ~(rec.saturated().reshape(len(F), -1).any(0))
+    if len(F) < 3:
+        return np.array([0.0, 255.0]), np.array([1.0, 1.0])   # 2 frames: no temporal spread to measure
+    counts = np.bincount(pixel_index(rec.events, rec.width), minlength=F.shape[1])
+    q = float(np.percentile(counts, 25))
+    quiet = ok & (counts <= q + 2 * np.sqrt(q + 1))
+    if quiet.sum() < 20:
+        quiet = ok
+    X = F[:, quiet]
+    t = np.linspace(-1, 1, len(F))[:, None]
+    X = X - (t * X).sum(0) / (t * t).sum() * t
+    sd = X.std(0, ddof=1)
+    med = np.median(F[:, quiet], 0)
+    edges = np.unique(np.percentile(med, np.linspace(0, 100, 7)))
+    centres, noise = [], []
+    for a, b in zip(edges[:-1], edges[1:]):
+        m = (med >= a) & (med <= b)
+        if m.sum() >= 10:
+            centres.append(float(np.median(med[m])))
+            noise.append(max(float(np.median(sd[m])), 0.5))   # 8-bit quantisation: >= 0.5 DN
+    if not centres:
+        return np.array([0.0, 255.0]), np.array([1.0, 1.0])
+    return np.asarray(centres), np.asarray(noise)
+
+
+class _Samples:
+    """Selected frame pairs for one dark level: per-pixel sums of (dL, N_on, N_off) over up and down pairs,
+    split by intensity band and by time half."""
+
+    def __init__(self, rec: Recording, on: np.ndarray, off: np.ndarray, curve: tuple[float, float], noise,
+                 band_edges, exclude: np.ndarray):
+        dark, knee = curve
+        F = rec.frames.reshape(len(rec.frames), -1)
+        valid = rec.valid(dark).reshape(len(F), -1)
+        valid[:, exclude] = False
+        L = log_intensity(F, dark, knee, rec.full_scale)
+        sdn = np.interp(F, *noise)
+        rel = sdn / np.maximum(F - dark, knee * (rec.full_scale - dark))   # dL/dDN of the lin-log curve
+        dL = L[1:] - L[:-1]
+        v = valid[1:] & valid[:-1]
+        tau = np.maximum(TAU_SIGMAS * np.sqrt(rel[1:] ** 2 + rel[:-1] ** 2), TAU_MIN)
+        up = v & (dL > tau)
+        dn = v & (dL < -tau)
+        # a reversal inside pair k shows as pair k-1 or k+1 going the other way: drop pairs next to one
+        rev = np.zeros_like(up)
+        rev[1:] = (up[1:] & dn[:-1]) | (dn[1:] & up[:-1])
+        rev[:-1] |= (up[:-1] & dn[1:]) | (dn[:-1] & up[1:])
+        # the events say it directly: the last event before the pair and the last one inside it must go the
+        # pair's way (none yet = unknown, kept)
+        lp = last_polarity(rec)
+        rev |= (up & ((lp[:-1] < 0) | (lp[1:] < 0))) | (dn & ((lp[:-1] > 0) | (lp[1:] > 0)))
+        self.up0, self.dn0 = up & ~rev, dn & ~rev
+        self.up, self.dn = self.up0, self.dn0
+        self.dL = dL
+        self.sd = np.sqrt(rel[1:] ** 2 + rel[:-1] ** 2)
+        mean_dn = 0.5 * (F[1:] + F[:-1])
+        self.band = np.digitize(mean_dn, band_edges)          # 0..len(edges)
+        self.nb = len(band_edges) + 1
+        half = np.zeros(len(dL), np.int64)
+        half[len(dL) // 2:] = 1
+        self.half = half[:, None]
+        self.on, self.off = on, off
+
+    def trim(self, c_on: float, c_off: float) -> None:
+        """Drop the pairs the model cannot explain: |dL - C_on N_on + C_off N_off| can reach C_on + C_off
+        (the reference residual at both ends) plus frame noise, not more. Events lost to the refractory
+        period at fast edges, flicker and hot pixels land outside."""
+        r = np.abs(self.dL - c_on * self.on + c_off * self.off)
+        ok = r <= c_on + c_off + TAU_SIGMAS * self.sd
+        self.up, self.dn = self.up0 & ok, self.dn0 & ok
+
+    def fit(self, iterations: int = 4) -> tuple[float, float]:
+        """Solve, trim, solve again."""
+        c = solve(self.totals())
+        for _ in range(iterations):
+            if not np.isfinite(c).all():
+                break
+            self.trim(*c)
+            c = solve(self.totals())
+        return c
+
+    def totals(self) -> np.ndarray:
+        out = []
+        for m, sgn in ((self.up, 1.0), (self.dn, -1.0)):
+            out += [sgn * self.dL[m].sum(), self.on[m].sum(), self.off[m].sum()]
+        return np.asarray(out, float)
+
+    def sums(self, key: np.ndarray, nkeys: int) -> np.ndarray:
+        """(P, nkeys, 6) per-pixel sums [dL_up, Non_up, Noff_up, -dL_dn, Non_dn, Noff_dn] by key (pairs, P)."""
+        P = self.dL.shape[1]
+        out = np.zeros((P, nkeys, 6))
+        pix = np.broadcast_to(np.arange(P), self.dL.shape)
+        for j, (m, sgn) in enumerate(((self.up, 1.0), (self.dn, -1.0))):
+            idx = pix[m] * nkeys + np.broadcast_to(key, self.dL.shape)[m]
+            for c, val in enumerate((sgn * self.dL[m], self.on[m], self.off[m])):
+                out[..., 3 * j + c] = np.bincount(idx, weights=val, minlength=P * nkeys).reshape(P, nkeys)
+        return out
+
+
+def solve(s: np.ndarray) -> tuple[float, float]:
+    """(C_on, C_off) from summed [dL_up, Non_up, Noff_up, dL_dn, Non_dn, Noff_dn]; nan if not solvable."""
+    a = np.array([[s[1], -s[2]], [-s[4], s[5]]])
+    b = np.array([s[0], s[3]])
+    det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    if not det > 0 or s[1] <= 0 or s[5] <= 0:
+        return float("nan"), float("nan")
+    c = np.linalg.solve(a, b)
+    return (float(c[0]), float(c[1])) if (c > 0).all() else (float("nan"), float("nan"))
+
+
+def _band_spread(s_bands: np.ndarray) -> float:
+    """How much the thresholds fitted per intensity band disagree: sum of squared log deviations."""
+    logs = []
+    for b in range(s_bands.shape[0]):
+        c = solve(s_bands[b])
+        if np.isfinite(c).all():
+            logs.append(np.log(c))
+    if len(logs) < 2:
+        return float("inf")
+    logs = np.asarray(logs)
+    return float(((logs - logs.mean(0)) ** 2).sum() / (len(logs) - 1))
+
+
+KNEES = (0.5, 0.3, 0.2, 0.15, 0.1, 0.075, 0.05, 0.03, 0.02, 0.01, 0.005)
+
+
+def log_intensity(F: np.ndarray, dark: float, knee: float, full: float) -> np.ndarray:
+    """The simulator's lin-log curve (ev3dgs.logmap.safe_log) of the frames' linear intensity."""
+    from ..logmap import safe_log
+
+    return safe_log(np.clip((F - dark) / (full - dark), 0.0, None), knee)
+
+
+def curve_grid(rec: Recording) -> list[tuple[float, float]]:
+    """Candidate (dark DN, log knee) pairs along one line: at dark 0, knees from 0.5 down to 0.005 (the DVS
+    photoreceptor's own dark current: its log bends over at the dark end of the frames); then, at the
+    simulator's default knee, dark levels from 0 up to just below the darkest well-exposed level."""
+    from ..logmap import DEFAULT_LOG_KNEE
+
+    top = min(float(np.percentile(rec.frames, 0.5)), 40.0)
+    step = max(1.0, float(np.ceil(top / 12)))
+    darks = np.arange(0.0, np.floor(top) + 1e-9, step)
+    return [(0.0, k) for k in KNEES] + [(float(d), DEFAULT_LOG_KNEE) for d in darks]
+
+
+def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.ndarray | None = None,
+                   boot: int = 200, seed: int = 0, curve: tuple[float, float] | None = None) -> ThresholdFit:
+    """Fit C_on, C_off, mismatch sigma and the dark level (or use `dark`); exclude = pixels to leave out
+    (hot pixels). Raises InputError when no pair has a usable change in both directions."""
+    P = rec.width * rec.height
+    exclude = np.zeros(P, bool) if exclude is None else exclude
+    noise = frame_noise(rec)
+    F = rec.frames.reshape(len(rec.frames), -1)
+    mean_dn = 0.5 * (F[1:] + F[:-1])
+    ok = ~rec.saturated().reshape(len(F), -1)
+    good = (ok[1:] & ok[:-1] & (mean_dn > 3))
+    band_edges = np.percentile(mean_dn[good], [100 / 3, 200 / 3]) if good.any() else np.array([85.0, 170.0])
+    from ..logmap import DEFAULT_LOG_KNEE
+
+    grid = [curve] if curve is not None else curve_grid(rec)
+    totals, bands, samples = [], [], []
+    for g in grid:
+        smp = _Samples(rec, on, off, g, noise, band_edges, exclude)
+        smp.fit()
+        sb = smp.sums(smp.band, smp.nb)                     # (P, bands, 6)
+        samples.append(smp)
+        bands.append(sb)
+        totals.append(sb.sum(1))
+    spread = np.array([_band_spread(b.sum(0)) for b in bands])
+    gi = int(np.argmin(spread)) if np.isfinite(spread).any() else 0
+    smp, tot = samples[gi], totals[gi]
+    c_on, c_off = solve(tot.sum(0))
+    if not np.isfinite([c_on, c_off]).all():
+        raise InputError(f"{rec.path}: no frame pair shows a log-intensity change with events in both directions "
+                         "on well-exposed pixels: the contrast thresholds cannot be fitted")
+    # robust: drop pixels whose summed residual is an outlier, refit
+    r = np.concatenate([tot[:, 0] - c_on * tot[:, 1] + c_off * tot[:, 2],
+                        tot[:, 3] - c_off * tot[:, 5] + c_on * tot[:, 4]])
+    used = (tot[:, [1, 2, 4, 5]].sum(1) > 0) | (np.abs(tot[:, [0, 3]]).sum(1) > 0)
+    rr = r.reshape(2, P)[:, used]
+    scale = 1.4826 * np.median(np.abs(rr)) + 1e-12
+    outlier = np.zeros(P, bool)
+    outlier[used] = (np.abs(rr) > 5 * scale).any(0)
+    keep = used & ~outlier
+    c_on, c_off = solve(tot[keep].sum(0))
+    notes = [f"{int(outlier.sum())} pixels dropped as outliers of the threshold fit"]
+    # bootstrap over pixels, the dark level refitted each time
+    rng = np.random.default_rng(seed)
+    kidx = np.flatnonzero(keep)
+    bt = np.stack([b[kidx] for b in bands])               # (G, K, bands, 6)
+    boots = []
+    for _ in range(boot):
+        w = np.bincount(rng.integers(0, len(kidx), len(kidx)), minlength=len(kidx)).astype(float)
+        sb = np.einsum("k,gkbc->gbc", w, bt)
+        sp = [_band_spread(x) for x in sb]
+        j = int(np.argmin(sp)) if np.isfinite(sp).any() else gi
+        boots.append((*solve(sb[j].sum(0)), j))
+    boots = np.asarray(boots).reshape(-1, 3)
+    fin = np.isfinite(boots).all(1)
+    se = boots[fin].std(0, ddof=1) if fin.sum() > 2 else np.full(3, np.nan)
+    # mismatch from time halves
+    halves = smp.sums(np.broadcast_to(smp.half, smp.dL.shape), 2)[keep]     # (K, 2, 6)
+    s_on, s_off = _mismatch(halves, c_on, c_off, rng, boot)
+    sig_vals = [v.value for v in (s_on, s_off) if v.value is not None]
+    if sig_vals:
+        sigma = float(np.sqrt(np.mean(np.square(sig_vals))))
+        # d sigma = sum(s_i ds_i) / (n sigma): independent errors
+        parts = [(v.value * v.se) ** 2 for v in (s_on, s_off) if v.value is not None and v.se is not None]
+        se_sig = float(np.sqrt(sum(parts)) / (len(sig_vals) * sigma)) if sigma > 0 and parts else None
+        sigma_v = Value(sigma, se_sig, "rms of the ON and OFF spreads (the simulator draws both with one sigma)")
+    else:
+        sigma_v = Value(None, None, s_on.note or s_off.note)
+    # harmonic-mean correction of the count-weighted ratio
+    if s_on.value:
+        c_on += s_on.value ** 2 / c_on
+    if s_off.value:
+        c_off += s_off.value ** 2 / c_off
+    gd = np.array([g[0] for g in grid])
+    gk = np.log10([g[1] for g in grid])
+    js = boots[fin, 2].astype(int) if fin.any() else np.array([gi])
+    se_d = float(gd[js].std(ddof=1)) if len(js) > 2 else None
+    se_k = float(gk[js].std(ddof=1)) if len(js) > 2 else None
+    edge = len(grid) > 1 and gi in (0, len(grid) - 1)
+    why = (f"at the end of the searched range: not pinned down" if edge else
+           "the grid value that makes the thresholds of three intensity bands agree best")
+    if curve is not None:
+        dark_v, knee_v = Value(curve[0], None, "given"), Value(curve[1], None, "given")
+    else:
+        dark_v = Value(float(grid[gi][0]), se_d, why)
+        knee_v = Value(float(grid[gi][1]), se_k, why + "; +- in decades") if grid[gi][1] != DEFAULT_LOG_KNEE \
+            else Value(None, se_k, f"the frames prefer the simulator's default {DEFAULT_LOG_KNEE:g} (a dark "
+                                   f"offset of {grid[gi][0]:g} DN instead)")
+    used_ev = int(tot[keep][:, [1, 2, 4, 5]].sum())
+    return ThresholdFit(Value(c_on, float(se[0])), Value(c_off, float(se[1])), sigma_v, s_on, s_off, dark_v, knee_v,
+                        float(np.median(noise[1])), int(keep.sum()), int(smp.up[:, keep].sum()),
+                        int(smp.dn[:, keep].sum()), used_ev, notes)
+
+
+def _mismatch(halves: np.ndarray, c_on: float, c_off: float, rng, boot: int) -> tuple[Value, Value]:
+    out = []
+    for pol in ("on", "off"):
+        if pol == "on":   # per-pixel C_on = (dL_up + C_off Noff_up) / Non_up
+            num = halves[..., 0] + c_off * halves[..., 2]
+            den = halves[..., 1]
+        else:
+            num = halves[..., 3] + c_on * halves[..., 4]
+            den = halves[..., 5]
+        m = (den >= MIN_EVENTS_HALF).all(1)
+        if m.sum() < MIN_MISMATCH_PIXELS:
+            out.append(Value(None, None, f"{int(m.sum())} pixels have {MIN_EVENTS_HALF}+ {pol.upper()} events in "
+                                         f"both halves of the recording (need {MIN_MISMATCH_PIXELS})"))
+            continue
+        a = num[m, 0] / den[m, 0]
+        b = num[m, 1] / den[m, 1]
+        lo, hi = np.percentile(np.concatenate([a, b]), [1, 99])
+        a, b = np.clip(a, lo, hi), np.clip(b, lo, hi)
+
+        def cov(i):
+            return float(np.mean((a[i] - a[i].mean()) * (b[i] - b[i].mean())))
+
+        n = len(a)
+        v = cov(np.arange(n))
+        bs = np.array([cov(rng.integers(0, n, n)) for _ in range(boot)])
+        se_var = float(bs.std(ddof=1)) if boot > 2 else float('nan')
+        if v <= 0:
+            out.append(Value(0.0, float(np.sqrt(max(se_var, 0.0))),
+                             f"not resolved: the spread is below what {n} pixels resolve"))
+        else:
+            sig = float(np.sqrt(v))
+            sigs = np.sqrt(np.clip(bs, 0, None))
+            out.append(Value(sig, float(sigs.std(ddof=1)) if boot > 2 else None, f"{n} pixels, split-half covariance"))
+    return out[0], out[1]
