@@ -38,7 +38,9 @@ def _viewmats(n: int) -> torch.Tensor:
     return torch.stack(out)
 
 
-def step_ms(n: int, width: int, height: int, threads: int, repeats: int = 5) -> float:
+def make_step(n: int, width: int, height: int):
+    """One blur+event training step on n random Gaussians at width x height (SUBPOSES renders, Adam), as a
+    closure taking the rasterizer's thread count (tools/studies/study_size.py uses it too)."""
     model = GaussianModel.random_in_bounds([[-0.6] * 3, [0.6] * 3], n, seed=0, sh_degree=3, init_opacity=0.3)
     model.active_sh_degree = 3
     opts = model.make_optimizers()
@@ -50,7 +52,7 @@ def step_ms(n: int, width: int, height: int, threads: int, repeats: int = 5) -> 
     pairs = pair_list(SUBPOSES, "all", g)
     counts = pose_counts(torch.randint(0, 3, (SUBPOSES - 1, 2, height, width), generator=g).float())
 
-    def step():
+    def step(threads: int) -> None:
         with reproducible():
             stack, _, _ = rasterization(model.means, model.quats_normalised, model.scales, model.opacities,
                                         model.sh, vms, K, width, height, sh_degree=3, backend="cpu",
@@ -60,6 +62,15 @@ def step_ms(n: int, width: int, height: int, threads: int, repeats: int = 5) -> 
             for opt in opts.values():
                 opt.step()
                 opt.zero_grad(set_to_none=True)
+
+    return step
+
+
+def step_ms(n: int, width: int, height: int, threads: int, repeats: int = 5) -> float:
+    run = make_step(n, width, height)
+
+    def step():
+        run(threads)
 
     step()  # warm-up (kernel load)
     times = []

@@ -31,12 +31,12 @@ from pathlib import Path  # noqa: E402
 TOOLS = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(TOOLS))  # pareto.py
 sys.path.insert(0, str(TOOLS / "bench"))  # bench_train_scaling.py
+from bench_train_scaling import SUBPOSES, make_step  # noqa: E402
 from pareto import machine, save_json  # noqa: E402
 
 SIZES = [(96, 72), (173, 130), (346, 260)]
 COUNTS = [10_000, 50_000, 100_000]
 THREADS = [1, 2]
-SUBPOSES = 5
 # profile groups: a function's cumulative time is charged to the first group whose pattern its name contains
 GROUPS = [("projection + SH (numba fwd+bwd)", ("_project_forward", "_project_backward")),
           ("binning / packing (tiles, sort)", ("_bin", "_pack", "_pixel_boxes", "_stable_argsort", "_sort_keys")),
@@ -44,42 +44,6 @@ GROUPS = [("projection + SH (numba fwd+bwd)", ("_project_forward", "_project_bac
           ("rasterize backward (numba)", ("_backward", "_reduce")),
           ("losses (torch)", ("blur_loss", "pose_event_loss", "log_intensity")),
           ("Adam (torch)", ("step",))]
-
-
-def make_step(n: int, width: int, height: int):
-    """The blur+event training step of bench_train_scaling.py, returned as a closure taking `threads`."""
-    import torch
-
-    from bench_train_scaling import _viewmats
-    from ev3dgs.splat.model import GaussianModel
-    from ev3dgs.splat.rasterize import rasterization
-    from ev3dgs.train.events import pair_list, pose_counts
-    from ev3dgs.train.losses import blur_loss, log_intensity, pose_event_loss
-    from ev3dgs.train.trainer import reproducible
-
-    model = GaussianModel.random_in_bounds([[-0.6] * 3, [0.6] * 3], n, seed=0, sh_degree=3, init_opacity=0.3)
-    model.active_sh_degree = 3
-    opts = model.make_optimizers()
-    f = 1.2 * width
-    K = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
-    vms = _viewmats(SUBPOSES)
-    g = torch.Generator().manual_seed(0)
-    target = torch.rand(height, width, 3, generator=g)
-    pairs = pair_list(SUBPOSES, "all", g)
-    counts = pose_counts(torch.randint(0, 3, (SUBPOSES - 1, 2, height, width), generator=g).float())
-
-    def step(threads: int) -> None:
-        with reproducible():
-            stack, _, _ = rasterization(model.means, model.quats_normalised, model.scales, model.opacities,
-                                        model.sh, vms, K, width, height, sh_degree=3, backend="cpu",
-                                        threads=threads)
-            loss = blur_loss(stack, target) + pose_event_loss(log_intensity(stack), counts, pairs, 0.2, 0.2) / 625
-            loss.backward()
-            for opt in opts.values():
-                opt.step()
-                opt.zero_grad(set_to_none=True)
-
-    return step
 
 
 def rss_mib() -> float:
