@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from ev3dgs.errors import InputError
+from ev3dgs.outputs import OutputError
 from ev3dgs.events import Events
 from ev3dgs.io.aedat4.writer import write_aedat4
 from ev3dgs.io.types import FrameData, ImuData, Triggers
@@ -335,5 +336,7 @@ def test_record_rejects_bad_arguments(tmp_path):
         record("lego", tmp_path / "x.h5")
     with pytest.raises(InputError):
         record("lego", tmp_path / "x.aedat4", fps=20, exposure_ms=60)   # exposure longer than the period
-    with pytest.raises(InputError):
-        record("lego", tmp_path / "missing" / "x.aedat4")
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("x")
+    with pytest.raises(OutputError, match="is not a folder"):   # a missing folder is made; one under a file not
+        record("lego", not_a_folder / "sub" / "x.aedat4")
