@@ -172,7 +172,12 @@ def test_v2e_presets_and_bench_share_them():
     path = Path(__file__).resolve().parents[1] / "tools" / "bench" / "bench_sim.py"
     spec = importlib.util.spec_from_file_location("bench_sim_for_test", path)
     mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    saved = dict(os.environ)      # the benchmark pins NUMBA_NUM_THREADS=1 for its own process at import:
+    try:                          # left in this process, numba's next config re-read would contradict its pool
+        spec.loader.exec_module(mod)
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
     assert mod.V2E_CLEAN == V2E_CLEAN.dvs and mod.V2E_NOISY == V2E_NOISY.dvs
 
 
