@@ -16,7 +16,7 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # numba re-reads its config at every compile and refuses a thread count other than the one its pool was
-# launched with; without NUMBA_NUM_THREADS it counts os.sched_getaffinity(0), which some tests monkeypatch
-# (tests/test_aedat4_packets.py): a compile inside such a test (a cold kernel cache, as on a fresh clone) would
-# change it. Pin it for the whole session to what the machine has.
+# launched with; without NUMBA_NUM_THREADS it counts os.sched_getaffinity(0), which a test monkeypatches
+# (tests/test_aedat4_packets.py). Pinned for the session as a guard; the failure seen on a cold kernel cache
+# came from a test importing a benchmark that sets NUMBA_NUM_THREADS=1 (tests/test_calibrate_compare.py).
 os.environ.setdefault("NUMBA_NUM_THREADS", str(max(1, len(os.sched_getaffinity(0)))))
