@@ -205,7 +205,7 @@ class DefaultStrategy:
         n_clone, n_split = int(is_clone.sum()), int(is_split.sum())
         if n_clone:
             self.clone(model, optimizers, state, is_clone)
-            # clones are appended at the end and are not split this round
+            # clones are appended at the end and are not split in this densification step
             is_split = torch.cat([is_split, is_split.new_zeros(n_clone)])
         if n_split:
             self.split(model, optimizers, state, is_split)
