@@ -33,9 +33,10 @@ def test_recovery(tmp_path, seed):
     make_recording(rec, truth, seed=seed)
     cal = calibrate_recording(rec, boot=60, seed=seed)
     th, nz = cal.thresholds, cal.noise
-    # the tolerances; the remaining bias of the thresholds (+5-13 %) is several bootstrap s.e.
+    # the tolerances (tools/studies/study_calibrate.py: threshold bias +0-4 % after the run-start and
+    # refractory corrections, from frame noise deciding which pairs are selected)
     assert th.c_on.value == pytest.approx(truth.pos_threshold, rel=0.10)
-    assert th.c_off.value == pytest.approx(truth.neg_threshold, rel=0.15)
+    assert th.c_off.value == pytest.approx(truth.neg_threshold, rel=0.10)
     assert th.sigma.value == pytest.approx(truth.sigma, rel=0.25)
     assert th.dark.value == pytest.approx(truth.dark_dn, abs=max(2.0, 3 * (th.dark.se or 0)))
     assert nz.shot_hz.value == pytest.approx(truth.shot_hz, abs=max(4 * nz.shot_hz.se, 0.25 * truth.shot_hz))

@@ -7,6 +7,8 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..errors import InputError
 from .aps import Recording, load_recording, pair_counts
 from .noise import NoiseFit, fit_noise
@@ -50,7 +52,11 @@ def calibrate_recording(path, boot: int = 200, seed: int = 0, curve: tuple[float
     n_on, n_off, T = window_counts(rec)
     static = static_mask(rec, th0.curve, min(th0.c_on.value, th0.c_off.value))
     hot, _ = hot_pixels(rec, n_on, n_off, T, th0.curve, th0.c_on.value, th0.c_off.value, static)
-    th = fit_thresholds(rec, on, off, exclude=hot, boot=boot, seed=seed, curve=curve)
+    # the change lost while a pixel is held after each event (refractory period) is put back in the fit
+    from .noise import refractory
+
+    refr = refractory(rec, hot, rng=np.random.default_rng(seed + 1), boot=0).value or 0.0
+    th = fit_thresholds(rec, on, off, exclude=hot, boot=boot, seed=seed, curve=curve, refractory_us=refr)
     nz = fit_noise(rec, th.curve, th.c_on.value, th.c_off.value, boot=boot, seed=seed)
     return Calibration(rec, th, nz)
 
