@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: setup test test-slow demo docs bench study-quick study bench-fidelity bench-fidelity-quick clean
+.PHONY: setup test test-slow demo docs bench study-quick study study-event-term bench-fidelity bench-fidelity-quick clean
 
 setup: $(STAMP)
 
@@ -52,7 +52,15 @@ study: setup
 	$(BIN)/python tools/studies/study_render.py
 	$(BIN)/python tools/studies/study_train.py
 
-# issue 13: naive / blur-only / blur+event / sharp oracle on the built-in scenes, 3 seeds (~1 h on 2 cores);
+# the event term against the contrast threshold and its mismatch on one scene (~45 min on 2 cores)
+study-event-term: setup
+	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-count --seeds 0 \
+		--json tools/results/study_event_term_count.json
+	$(BIN)/python tools/studies/study_event_term.py --variants blur-only blur+event oracle \
+		--merge tools/results/study_event_term_count.json \
+		--json tools/results/study_event_term.json --plot tools/results/study_event_term.png
+
+# naive / blur-only / blur+event / sharp oracle on the built-in scenes, 3 seeds (~1 h on 2 cores);
 # the quick one is lego, one seed, small size (<= 10 minutes)
 bench-fidelity: setup
 	$(BIN)/python tools/bench/bench_fidelity.py

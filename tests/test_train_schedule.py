@@ -238,15 +238,19 @@ def test_logged_psnr_blurry_averages_in_the_blur_space(scene, tmp_path, monkeypa
 
 
 # ----------------------------------------------------------------------------------------------- (e) guard
-def test_nan_in_a_learned_threshold_gradient_stops_training(scene, tmp_path, monkeypatch):
-    real = T.pose_event_loss
+@pytest.mark.parametrize("norm", ["noise", "count"])
+def test_nan_in_a_learned_threshold_gradient_stops_training(scene, tmp_path, monkeypatch, norm):
+    name = "noise_event_loss" if norm == "noise" else "pose_event_loss"
+    real = getattr(T, name)
 
-    def poisoned(log_l, counts, pairs, th_pos, th_neg, convention):
+    def poisoned(log_l, counts, pairs, th_pos, *args):
         # value + 0: the loss stays finite; d sqrt(x)/dx at 0 is inf, times 0 -> NaN in theta_on's gradient only
-        return real(log_l, counts, pairs, th_pos, th_neg, convention) + 0.0 * torch.sqrt(th_pos - th_pos.detach())
+        out = real(log_l, counts, pairs, th_pos, *args)
+        nan_grad = 0.0 * torch.sqrt(th_pos - th_pos.detach())
+        return (out[0] + nan_grad, *out[1:]) if isinstance(out, tuple) else out + nan_grad
 
-    monkeypatch.setattr(T, "pose_event_loss", poisoned)
-    tr = Trainer(_cfg(scene, learn_thresholds=True), tmp_path / "run", quiet=True)
+    monkeypatch.setattr(T, name, poisoned)
+    tr = Trainer(_cfg(scene, learn_thresholds=True, event_norm=norm), tmp_path / "run", quiet=True)
     assert any(p is tr.thresholds["pos"] for p in tr.trained_parameters())
     with pytest.raises(TrainingError, match="non-finite loss or gradient at step 1"):
         tr.train_step()

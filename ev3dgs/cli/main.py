@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..train.config import EVENT_WEIGHTS
 from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 
@@ -85,6 +86,7 @@ def _train(args) -> int:
 
     opts = dict(
         scene=os.path.abspath(args.scene), iterations=args.iterations, subposes=args.subposes, event_weight=args.event_weight,
+        event_norm=args.event_norm, event_mismatch=args.event_mismatch,
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
         learn_thresholds=args.learn_thresholds, sh_degree=args.sh_degree,
@@ -242,8 +244,17 @@ def build_parser():
                                                 "already is refused unless --resume or --force")
     t.add_argument("--iterations", type=int, default=3000, help="optimisation steps (default %(default)s)")
     t.add_argument("--subposes", type=int, default=5, help="renders across each exposure, b+1 (default %(default)s)")
-    t.add_argument("--event-weight", type=finite_float, default=1 / 625,
-                   help="omega, the weight of the event loss (default 1/625 = %(default)s)")
+    t.add_argument("--event-weight", type=finite_float, default=None,
+                   help="omega, the weight of the event loss (default: the event norm's, "
+                        f"{EVENT_WEIGHTS['noise']:g} for noise, 1/625 for count)")
+    t.add_argument("--event-norm", choices=tuple(EVENT_WEIGHTS), default="noise",
+                   help="noise: each event residual over its expected error (quantisation, threshold mismatch, "
+                        "noise events and the model's own error), so finer thresholds never let the event term "
+                        "swamp the blur loss; count: the residual in events, as E2NeRF/Ev3DGS "
+                        "(default %(default)s)")
+    t.add_argument("--event-mismatch", type=finite_float, default=None,
+                   help="pixel-to-pixel threshold spread relative to the threshold, for --event-norm noise "
+                        "(default: the scene's simulated value, or 0.1 for recordings)")
     t.add_argument("--event-pairs", type=int, default=0,
                    help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs "
                         "(default %(default)s)")

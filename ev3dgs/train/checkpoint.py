@@ -38,6 +38,7 @@ def save_checkpoint(path: Path, trainer) -> None:
         "config": asdict(trainer.cfg),
         "scene": scene_fingerprint(trainer.data),
         "pose_refiner": None if getattr(trainer, "pose_refiner", None) is None else trainer.pose_refiner.state_dict(),
+        "event_floor": getattr(trainer, "event_floor", None),
     }
     from ..outputs import atomic_path
 
@@ -114,4 +115,6 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
         trainer.threshold_opt.load_state_dict(payload["threshold_opt"])
     if getattr(trainer, "pose_refiner", None) is not None and payload.get("pose_refiner") is not None:
         trainer.pose_refiner.load_state_dict(payload["pose_refiner"])
+    floor = payload.get("event_floor")   # absent in checkpoints of the count norm, which has none
+    trainer.event_floor = None if floor is None else float(floor)
     trainer.step = int(payload["step"])

@@ -12,7 +12,7 @@ from ..errors import ConfigError
 # saved, how many threads the rasterizer kernels use: results are bitwise the same for any thread count).
 RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
 # keys added after runs were saved without them, with the value those runs used (not today's default)
-LEGACY_VALUES = {"pose_frame": "world"}
+LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count"}
 # keys of config.json that record facts about the run, not settings (TrainConfig.load skips them)
 RECORD_KEYS = ("scene_file",)
 
@@ -22,12 +22,23 @@ def with_legacy_values(data: dict) -> dict:
     return {**LEGACY_VALUES, **data} if isinstance(data, dict) else data
 
 
+# default event weight per event norm: "count" is Ev3DGS's 1/625 per squared event; "noise" is per unit of
+# chi-square (see losses.noise_event_loss and docs/fidelity.md for how it was set)
+EVENT_WEIGHTS = {"noise": 8.0 / 625.0, "count": 1.0 / 625.0}
+DEFAULT_REL_MISMATCH = 0.1   # sigma / theta assumed when the scene does not say (DAVIS346: a few hundredths
+                             # of thresholds 0.1-0.3)
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     scene: str
     iterations: int = 3000
     subposes: int = 5                 # b + 1 renders across each exposure
-    event_weight: float = 1.0 / 625.0
+    event_weight: float | None = None  # omega; None = the event norm's default (EVENT_WEIGHTS)
+    event_norm: str = "noise"         # "noise": residual over its expected error (losses.noise_event_loss);
+                                      # "count": residual in events, / theta_mean (losses.pose_event_loss)
+    event_mismatch: float | None = None  # relative per-pixel threshold spread for the noise norm; None = the
+                                      # scene's (simulated) or DEFAULT_REL_MISMATCH
     event_pairs: int = 0              # 0 = all pairs of the b+1 renders, k = k random pairs per step
     naive: bool = False               # plain 3DGS on the blurry frame at the mid pose
     event_loss: bool = True
@@ -62,7 +73,9 @@ class TrainConfig:
     def __post_init__(self):
         check(self.iterations >= 1, "--iterations must be >= 1")
         check(1 <= self.subposes <= 64, "--subposes must be in [1, 64]")
-        check(self.event_weight >= 0, "--event-weight must be >= 0")
+        check(self.event_weight is None or self.event_weight >= 0, "--event-weight must be >= 0")
+        check(self.event_norm in EVENT_WEIGHTS, f"--event-norm must be one of {', '.join(EVENT_WEIGHTS)}")
+        check(self.event_mismatch is None or 0 <= self.event_mismatch <= 1, "--event-mismatch must be in [0, 1]")
         n_pairs = self.subposes * (self.subposes - 1) // 2
         check(0 <= self.event_pairs <= n_pairs,
               f"--event-pairs must be in [0, {n_pairs}] ({self.subposes} sub-poses have {n_pairs} pairs)")
@@ -91,7 +104,12 @@ class TrainConfig:
     @property
     def uses_events(self) -> bool:
         return (self.event_loss and not self.naive and not self.oracle and self.subposes > 1
-                and self.event_weight > 0)
+                and self.omega > 0)
+
+    @property
+    def omega(self) -> float:
+        """The event loss weight: --event-weight, or the event norm's default."""
+        return EVENT_WEIGHTS[self.event_norm] if self.event_weight is None else self.event_weight
 
     @property
     def variant(self) -> str:

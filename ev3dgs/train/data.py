@@ -40,6 +40,8 @@ class TrainData:
     blur_space: str = "linear"         # resolved: how the trainer averages renders (blur_loss space)
     event_transfer: str = "srgb"       # resolved: what log_intensity decodes ("srgb", "linear", "display")
     sub_c2w: np.ndarray | None = None  # (N,B,4,4) float64 camera-to-world of the sub-poses (pose refinement)
+    mismatch_sigma: float | None = None   # absolute per-pixel threshold spread the scene was simulated with
+    noise_rate_hz: float | None = None    # background-activity events per pixel and second (leak + shot noise)
 
     @property
     def n_views(self) -> int:
@@ -116,4 +118,22 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
         transfer=transfer,
         count_convention=sc.sensor.count_convention or schema.default_count_convention(sc.source, sc.config),
         raw_matrix=sc.sensor.camera_raw_matrix, blur_space=blur, event_transfer=ev_transfer, sub_c2w=sub,
+        **sensor_noise(sc.config),
     )
+
+
+def sensor_noise(config: dict) -> dict:
+    """{mismatch_sigma, noise_rate_hz} from a simulated scene's provenance (/config sim.dvs); None where the
+    file does not say (real recordings, imports): the trainer then uses its own prior (--event-mismatch)."""
+    sim = config.get("sim") if isinstance(config, dict) else None
+    dvs = sim.get("dvs") if isinstance(sim, dict) else None
+    if not isinstance(dvs, dict):
+        return {"mismatch_sigma": None, "noise_rate_hz": None}
+
+    def num(table, key):
+        v = table.get(key) if isinstance(table, dict) else None
+        return float(v) if isinstance(v, (int, float)) and np.isfinite(v) and v >= 0 else None
+
+    sigma = num(dvs.get("threshold_mismatch"), "sigma")
+    rate = sum(num(dvs.get(k), "rate_hz") or 0.0 for k in ("leak", "shot_noise"))
+    return {"mismatch_sigma": 0.0 if sigma is None else sigma, "noise_rate_hz": rate}

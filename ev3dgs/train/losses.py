@@ -250,3 +250,90 @@ def pose_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[t
     residual = d.index_select(0, idx[:, 1]) - d.index_select(0, idx[:, 0])
     return _scaled_mse(residual, tp, tn)
 
+
+
+# --------------------------------------------------------------------------- event term with a noise model
+EVENT_NORMS = ("noise", "count")
+FLOOR_MIN = 1e-4      # intensity^2 (1 = white): the model floor never goes below a 1 % error of full scale
+                      # (8-bit frames resolve 0.4 %; nothing a 3DGS at these sizes fits is finer)
+FLOOR_MOMENTUM = 0.9  # exponential average of the model's excess squared residual over steps
+
+
+def count_variance(counts: torch.Tensor, idx: torch.Tensor, tp: torch.Tensor, tn: torch.Tensor,
+                   rel_mismatch: float, noise_events: torch.Tensor | None = None) -> torch.Tensor:
+    """Expected squared error (log units) of the count-based change estimate for each pair and pixel:
+
+    * quantisation: the signal sits somewhere inside the threshold band at each pose (uniform over one
+      threshold): two ends, variance theta^2 / 12 each, theta^2 = (theta_on^2 + theta_off^2) / 2;
+    * mismatch: every event moves the true reference by the pixel's own threshold, theta (1 + e), e ~ N(0,
+      rel_mismatch^2) fixed per pixel: the error of theta_on n_on + theta_off n_off events at the nominal
+      thresholds has variance rel_mismatch^2 (theta_on n_on + theta_off n_off)^2 (it grows with the change,
+      not with the number of events: finer thresholds do not shrink it);
+    * noise events: each moves the estimate by a threshold; ``noise_events`` (pairs,) = expected noise events
+      per pixel in each pair's window (Poisson): variance theta^2 times that.
+
+    counts: (K, 2, H, W) cumulative; idx: (P, 2) pose indices -> (P, H, W)."""
+    c = counts.to(tp.dtype)
+    n = (c.index_select(0, idx[:, 1]) - c.index_select(0, idx[:, 0])).abs()
+    a = tp * n[:, 0] + tn * n[:, 1]
+    theta2 = 0.5 * (tp * tp + tn * tn)
+    v = theta2 / 6.0 + (rel_mismatch * a) ** 2
+    if noise_events is not None:
+        v = v + theta2 * noise_events.to(v.dtype)[:, None, None]
+    return v
+
+
+def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple[int, int]], theta_pos,
+                     theta_neg, convention: str = "random_phase", rel_mismatch: float = 0.1,
+                     noise_events: torch.Tensor | None = None, floor: float | None = None,
+                     knee: float | None = DEFAULT_LOG_KNEE) -> tuple[torch.Tensor, float]:
+    """The event loss weighted by a noise model of the counts: mean over pairs and pixels of
+
+        r^2 / (v + floor * g),   r = (log_l[k2] - log_l[k1]) - (E_k2 - E_k1)   (log units, as pose_event_loss)
+
+    v = count_variance (quantisation, per-pixel mismatch, noise events): what the counts cannot say. floor * g
+    = the model's own squared error, which no event count can beat: ``floor`` is a variance in linear
+    intensity (the trainer estimates it as it goes: :func:`update_floor`; None = this step's own estimate, as
+    on a run's first step) and g = (1 / I_k1^2 + 1 / I_k2^2) / 2 carries it into log units at the pixel's
+    rendered intensities I (detached, at least the log knee; ``knee`` None: g = 1, one floor in log units for
+    every pixel). A chi-square per sample: about 1 where the rendering fits the counts to their noise, so its
+    size does not depend on the threshold; a pixel-pair weighs by how precisely its counts measure the
+    change, and never above 1 / (floor g), so finer thresholds sharpen the target without letting the term
+    outgrow the blur loss (the count norm, residual / theta, grows as 1 / theta^2).
+    Returns (loss, this step's floor estimate: the mean of (r^2 - v) / g, a detached float)."""
+    if log_l.ndim != 3 or counts.ndim != 4 or counts.shape[0] != log_l.shape[0]:
+        raise ValueError(f"log_l must be (K, H, W) and counts (K, 2, H, W), got {tuple(log_l.shape)} and "
+                         f"{tuple(counts.shape)}")
+    if not (rel_mismatch >= 0 and math.isfinite(rel_mismatch)):
+        raise ValueError(f"rel_mismatch must be finite and >= 0, got {rel_mismatch!r}")
+    if floor is not None and not (floor > 0 and math.isfinite(floor)):
+        raise ValueError(f"floor must be finite and > 0, got {floor!r}")
+    tp, tn = _thetas(theta_pos, theta_neg, log_l)
+    if len(pairs) == 0:
+        return log_l.sum() * 0.0, FLOOR_MIN
+    d = log_l - expected_log_change(counts.to(log_l.dtype), tp, tn, convention)
+    idx = torch.as_tensor([tuple(pr) for pr in pairs], dtype=torch.long, device=log_l.device)
+    residual = d.index_select(0, idx[:, 1]) - d.index_select(0, idx[:, 0])   # index_select: see pose_event_loss
+    v = count_variance(counts, idx, tp.detach(), tn.detach(), rel_mismatch, noise_events)
+    with torch.no_grad():
+        if knee is None:
+            g = torch.ones_like(v)
+        else:
+            inv2 = log_l.detach().exp().clamp(min=knee) ** -2
+            g = 0.5 * (inv2.index_select(0, idx[:, 0]) + inv2.index_select(0, idx[:, 1]))
+        estimate = max(float(torch.mean((residual * residual - v) / g)), FLOOR_MIN)
+    if floor is None:
+        floor = estimate
+    loss = torch.mean(residual * residual / (v + floor * g))
+    return loss, estimate
+
+
+def update_floor(floor: float | None, estimate: float) -> float:
+    """The model's squared error beyond the counts' own noise (noise_event_loss's estimate of one step) as an
+    exponential average over steps (None: the first step's value), never below FLOOR_MIN. Early in training
+    the rendering is far from the counts, the floor is large and the event term weighs little; it tightens
+    as the model fits."""
+    estimate = max(estimate, FLOOR_MIN)
+    if floor is None:
+        return estimate
+    return max(FLOOR_MOMENTUM * floor + (1.0 - FLOOR_MOMENTUM) * estimate, FLOOR_MIN)

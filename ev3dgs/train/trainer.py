@@ -1,8 +1,11 @@
 """The training loop: blur rendering loss over b+1 poses of each exposure, plus the event rendering loss.
 
     loss = (1 - lambda) * MSE(mean_k render_k, blurry) + lambda * (1 - SSIM(...))
-         + omega * mean(((log L_k2 - log L_k1) - E[change | ON, OFF counts]) / theta_mean) ** 2
-         (losses.pose_event_loss: theta_on * n_on - theta_off * n_off, per the scene's count convention)
+         + omega * mean(r ** 2 / (v + floor)),   r = (log L_k2 - log L_k1) - E[change | ON, OFF counts]
+         (--event-norm noise, the default: losses.noise_event_loss; v = the counts' expected squared error
+         from quantisation, threshold mismatch and noise events, floor = the model's own, tracked over steps)
+         or + omega * mean((r / theta_mean) ** 2)   (--event-norm count: losses.pose_event_loss)
+         E = theta_on * n_on - theta_off * n_off, per the scene's count convention
 
 (added, not subtracted as in the published Ev3DGS code; the binned events are never modified in place.)
 
@@ -39,7 +42,8 @@ from .config import TrainConfig
 from .data import TrainData, load_train_data
 from .events import pair_list, pose_counts
 from .init import init_bounds
-from .losses import average_loss, blur_average, log_intensity, pose_event_loss, srgb_to_linear_torch
+from .losses import (average_loss, blur_average, log_intensity, noise_event_loss, pose_event_loss,
+                     srgb_to_linear_torch, update_floor)
 from .metrics import psnr
 from .rng import stream_generator, stream_seed
 
@@ -118,6 +122,8 @@ class Trainer:
                               if cfg.learn_thresholds and cfg.uses_events else None)
         self.step = 0
         self.use_events = cfg.uses_events and self.data.bins is not None
+        self.event_floor: float | None = None   # the noise norm's model floor (losses.update_floor)
+        self.rel_mismatch, self.noise_rate_hz = self._event_noise()
         self.pose_refiner = None  # --refine-poses (issue 16): learnable exposure-trajectory corrections
         if cfg.refine_poses:
             from .pose_refine import PoseRefiner
@@ -125,6 +131,20 @@ class Trainer:
             self.pose_refiner = PoseRefiner.for_training(self.data, cfg, self.device)
 
     # ------------------------------------------------------------------ helpers
+    def _event_noise(self) -> tuple[float, float]:
+        """(relative threshold mismatch, noise events per pixel and second) for the noise norm: --event-mismatch,
+        else the scene's simulated settings, else DEFAULT_REL_MISMATCH and no noise events."""
+        from .config import DEFAULT_REL_MISMATCH
+
+        d = self.data
+        if self.cfg.event_mismatch is not None:
+            rel = self.cfg.event_mismatch
+        elif d.mismatch_sigma is not None:
+            rel = d.mismatch_sigma / (0.5 * (d.pos_threshold + d.neg_threshold))
+        else:
+            rel = DEFAULT_REL_MISMATCH
+        return float(rel), float(d.noise_rate_hz or 0.0)
+
     def _next_view(self) -> int:
         if not self.view_queue:
             self.view_queue = torch.randperm(self.data.n_views, generator=self.generator).tolist()
@@ -181,9 +201,18 @@ class Trainer:
             pairs = pair_list(len(poses), cfg.event_pairs or "all", self.pair_generator)
             log_l = log_intensity(stack, data.color_filter, data.log_knee, data.event_transfer, data.raw_matrix,
                                   linear=lin)
-            l_event = pose_event_loss(log_l, pose_counts(data.bins[v]), pairs, self.thresholds["pos"].exp(),
-                                      self.thresholds["neg"].exp(), data.count_convention)
-            loss = loss + cfg.event_weight * l_event
+            counts = pose_counts(data.bins[v])
+            tp, tn = self.thresholds["pos"].exp(), self.thresholds["neg"].exp()
+            if cfg.event_norm == "count":
+                l_event = pose_event_loss(log_l, counts, pairs, tp, tn, data.count_convention)
+            else:
+                t = data.sub_times[v].astype(np.float64) * 1e-6
+                noise = (torch.tensor([self.noise_rate_hz * abs(t[b] - t[a]) for a, b in pairs],
+                                      dtype=log_l.dtype, device=log_l.device) if self.noise_rate_hz > 0 else None)
+                l_event, estimate = noise_event_loss(log_l, counts, pairs, tp, tn, data.count_convention,
+                                                     self.rel_mismatch, noise, self.event_floor, data.log_knee)
+                self.event_floor = update_floor(self.event_floor, estimate)
+            loss = loss + cfg.omega * l_event
         loss.backward()
         self._guard(loss, l_blur, l_event)
         for opt in self.optimizers.values():

@@ -1,0 +1,149 @@
+"""The noise-model event norm (losses.noise_event_loss, count_variance, update_floor) against an independent
+simulation of the count noise, and its numerical behaviour at the extremes."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ev3dgs.train.losses import (FLOOR_MIN, count_variance, noise_event_loss, pose_event_loss,
+                                 update_floor)
+
+
+def _simulate_counts(rng, change, theta, rel):
+    """Pixels with their own thresholds theta (1 + e), e ~ N(0, rel^2), a random reference phase and a
+    monotone log change `change` (> 0, per pixel): their ON counts (a crossing every threshold)."""
+    th = theta * np.clip(1 + rel * rng.standard_normal(len(change)), 0.05, None)
+    phase = rng.uniform(0, 1, len(change)) * th      # distance already travelled towards the next crossing
+    return np.floor((change + phase) / th).astype(np.int64)
+
+
+@pytest.mark.parametrize("theta,rel", [(0.05, 0.0), (0.2, 0.1), (0.1, 0.2)])
+def test_count_variance_matches_simulated_error(theta, rel):
+    """The variance model against brute-force counts: the error of theta * n (nominal threshold) as an
+    estimate of a random change, with random phases at both ends (quantisation: the difference of two
+    uniform residuals, theta^2 / 6) and per-pixel thresholds (mismatch, rel^2 a^2 to first order in e).
+    Tolerance: 5 standard errors of a variance from n samples (sqrt(2 / n), generous for these bounded
+    errors) plus the second-order term of 1 / (1 + e) that the model leaves out, 9 rel^2 relative."""
+    rng = np.random.default_rng(0)
+    n = 200_000
+    change = rng.uniform(0.5, 1.0, n)
+    counts = _simulate_counts(rng, change, theta, rel)
+    err = theta * counts - change
+    c = torch.zeros((2, 2, 1, n), dtype=torch.float64)
+    c[1, 0, 0] = torch.from_numpy(counts).double()
+    v = count_variance(c, torch.tensor([[0, 1]]), torch.tensor(theta, dtype=torch.float64),
+                       torch.tensor(theta, dtype=torch.float64), rel)
+    model = float(v.mean())
+    measured = float(np.mean(err ** 2))
+    assert measured == pytest.approx(model, rel=5 * math.sqrt(2 / n) + 9 * rel ** 2)
+
+
+def test_count_variance_terms_by_hand():
+    c = torch.zeros((3, 2, 1, 2), dtype=torch.float64)
+    c[1, 0, 0, 0], c[2, 0, 0, 0], c[2, 1, 0, 0] = 2, 3, 1     # pixel 0: 3 ON, 1 OFF by pose 2
+    tp, tn = torch.tensor(0.2, dtype=torch.float64), torch.tensor(0.3, dtype=torch.float64)
+    idx = torch.tensor([[0, 2], [1, 2]])
+    v = count_variance(c, idx, tp, tn, 0.1, torch.tensor([0.5, 0.0]))
+    theta2 = 0.5 * (0.04 + 0.09)
+    # pair (0, 2): 3 ON, 1 OFF -> a = 0.6 + 0.3; pair (1, 2): 1 ON, 1 OFF -> a = 0.5
+    assert float(v[0, 0, 0]) == pytest.approx(theta2 / 6 + (0.1 * 0.9) ** 2 + theta2 * 0.5, rel=1e-12)
+    assert float(v[1, 0, 0]) == pytest.approx(theta2 / 6 + (0.1 * 0.5) ** 2, rel=1e-12)
+    assert float(v[0, 0, 1]) == pytest.approx(theta2 / 6 + theta2 * 0.5, rel=1e-12)   # no events: quantisation
+
+
+def test_chi_square_is_one_when_residuals_follow_the_model():
+    """Residuals drawn with the model's variance and a zero floor-excess give a loss near 1 (chi-square per
+    sample), whatever the threshold: the term's size does not depend on theta; the count norm's grows as
+    1 / theta^2 for the same log-unit residuals."""
+    rng = np.random.default_rng(1)
+    H, W = 64, 64
+    out, out_count = [], []
+    for theta in (0.05, 0.2):
+        c = torch.from_numpy(rng.integers(0, 4, (5, 2, H, W)).cumsum(0)).double()
+        tp = tn = torch.tensor(theta, dtype=torch.float64)
+        pairs = [(a, b) for a in range(5) for b in range(a + 1, 5)]
+        idx = torch.tensor(pairs)
+        v = count_variance(c, idx, tp, tn, 0.1)
+        # log renders whose pair differences match the expected change up to noise of variance v + floor:
+        # build per-pose values, then check the loss on pairs (0, k) only (independent residuals)
+        floor = 0.01
+        E = tp * c[:, 0] - tn * c[:, 1]
+        noise = torch.zeros(5, H, W, dtype=torch.float64)
+        for k in range(1, 5):
+            noise[k] = torch.from_numpy(rng.standard_normal((H, W))) * (v[pairs.index((0, k))] + floor).sqrt()
+        log_l = E + noise
+        star = [(0, k) for k in range(1, 5)]
+        loss, _ = noise_event_loss(log_l, c, star, tp, tn, rel_mismatch=0.1, floor=floor, knee=None)
+        out.append(float(loss))
+        out_count.append(float(pose_event_loss(log_l, c, star, tp, tn)))
+    n = 4 * H * W
+    for x in out:   # mean of n chi-square(1) variables: s.d. sqrt(2 / n)
+        assert x == pytest.approx(1.0, abs=5 * math.sqrt(2 / n))
+    assert out_count[0] > 4 * out_count[1]
+
+
+def test_update_floor_tracks_the_estimate_and_is_bounded():
+    assert update_floor(None, 0.04) == pytest.approx(0.04)
+    assert update_floor(None, -0.01) == FLOOR_MIN           # residual below the count noise
+    f = None
+    for _ in range(200):
+        f = update_floor(f, 0.02)
+    assert f == pytest.approx(0.02, rel=1e-6)
+    assert update_floor(0.5, -1.0) >= FLOOR_MIN
+
+
+def test_floor_estimate_is_the_excess_over_the_count_noise_in_intensity_units():
+    """Residuals of known size at a known rendered intensity: the step's floor estimate is (r^2 - v) I^2."""
+    K, H, W = 2, 3, 4
+    I = 0.25
+    c = torch.zeros(K, 2, H, W, dtype=torch.float64)
+    log_l = torch.full((K, H, W), math.log(I), dtype=torch.float64)
+    log_l[1] += 0.1                                   # r = 0.1 everywhere (no events: E = 0)
+    _, est = noise_event_loss(log_l, c, [(0, 1)], 0.2, 0.2, rel_mismatch=0.0, floor=1e-2)
+    v = 0.04 / 6
+    g = 0.5 * (I ** -2 + (I * math.exp(0.1)) ** -2)
+    assert est == pytest.approx((0.01 - v) / g, rel=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), theta=st.floats(1e-3, 2.0), rel=st.floats(0.0, 1.0),
+       scale=st.sampled_from([0.0, 1e-6, 1.0, 1e3]), floor=st.one_of(st.none(), st.floats(FLOOR_MIN, 10.0)))
+def test_noise_loss_finite_with_finite_bounded_gradients(seed, theta, rel, scale, floor):
+    """Any threshold, mismatch and residual size: finite, non-negative loss and finite gradients, and the
+    gradient per residual is bounded by 2 r / floor (never 1 / theta^2)."""
+    g = torch.Generator().manual_seed(seed)
+    K, H, W = 4, 6, 5
+    log_l = (torch.randn(K, H, W, generator=g, dtype=torch.float64) * scale).requires_grad_(True)
+    c = torch.randint(0, 50, (K, 2, H, W), generator=g).cumsum(0)
+    tp = torch.tensor(theta, dtype=torch.float64, requires_grad=True)
+    pairs = [(0, 1), (1, 3), (0, 3)]
+    loss, est = noise_event_loss(log_l, c, pairs, tp, tp * 1.3, rel_mismatch=rel, floor=floor, knee=None)
+    loss.backward()
+    assert math.isfinite(float(loss.detach())) and float(loss.detach()) >= 0
+    assert torch.isfinite(log_l.grad).all() and torch.isfinite(tp.grad)
+    f = floor if floor is not None else est
+    # d loss / d log_l[k] = sum over the pairs holding k of +-2 r / (v + f) / n, |r| <= max |r|
+    n = len(pairs) * H * W
+    with torch.no_grad():
+        d = log_l - (tp * c[:, 0] - tp * 1.3 * c[:, 1])
+        r = torch.stack([d[b] - d[a] for a, b in pairs])
+    bound = 2 * 2 * float(r.abs().max()) / f / n          # every pose is in at most two of the pairs
+    assert float(log_l.grad.abs().max()) <= bound * (1 + 1e-9) + 1e-300
+
+
+def test_noise_loss_rejects_bad_arguments():
+    log_l = torch.zeros(3, 2, 2)
+    c = torch.zeros(3, 2, 2, 2)
+    with pytest.raises(ValueError):
+        noise_event_loss(log_l, c, [(0, 1)], 0.2, 0.2, rel_mismatch=-0.1)
+    with pytest.raises(ValueError):
+        noise_event_loss(log_l, c, [(0, 1)], 0.2, 0.2, floor=0.0)
+    with pytest.raises(ValueError):
+        noise_event_loss(log_l[0], c, [(0, 1)], 0.2, 0.2)
+    loss, _ = noise_event_loss(log_l, c, [], 0.2, 0.2)
+    assert float(loss) == 0.0

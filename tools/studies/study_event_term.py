@@ -1,0 +1,205 @@
+"""Study: does the trainer use the events it is given? A threshold x mismatch sweep on one scene.
+
+One scene (default tools/scenes/heldout_shake.toml) is rendered once; its events are simulated again for every
+(threshold, relative mismatch) cell, symmetric thresholds theta with per-pixel spread sigma = rel * theta, the
+frames and poses unchanged. Each cell is trained with blur+event under the noise-model event norm (the
+default, ``--event-norm noise``) and, for comparison, under the older count norm (residual in events,
+``--event-norm count``); blur-only and the sharp oracle do not see the events and are trained once per seed.
+Blur-view and novel-view PSNR, mean over seeds; wall time per run.
+
+    python tools/studies/study_event_term.py --json tools/results/study_event_term.json \\
+        --plot tools/results/study_event_term.png [--thresholds 0.05 0.1 0.2 0.4] [--mismatch 0 0.1 0.4]
+        [--seeds 0 1] [--iterations 1000] [--views 12] [--variants blur+event blur+event-count]
+        [--merge EARLIER.json]
+
+`make study-event-term` runs the noise norm, blur-only and the oracle on seeds 0 and 1, and the count norm on
+seed 0 (tools/results/study_event_term_count.json), merged into one table and plot.
+
+Runs go two at a time by default (one per core, one thread each) and are cached by settings and trainer code
+in --cache (tools/bench/bench_fidelity.py's run_one), so an interrupted study resumes.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))
+sys.path.insert(0, str(ROOT / "tools" / "bench"))
+
+from pareto import save_json  # noqa: E402
+
+VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="noise"),
+            "blur+event-count": dict(event_norm="count"), "oracle": dict(oracle=True)}
+SENSOR_FREE = ("blur-only", "oracle")   # variants that never read the events: one run per seed
+
+
+def cell_name(theta: float, rel: float) -> str:
+    return f"t{theta:g}_m{rel:g}"
+
+
+def make_cells(scene: str, thetas, rels, render: dict, cache: Path, quiet: bool) -> dict:
+    """{cell name: scene file}; the Blender render is done once and shared through its cache folder."""
+    from ev3dgs.sim.config import ThresholdMismatch
+    from ev3dgs.sim.dataset import _cache_key, make_dataset
+    from ev3dgs.sim.scenes import load_scene, resolve_render
+
+    spec = load_scene(scene)
+    r = resolve_render(spec, **render)
+    cache.mkdir(parents=True, exist_ok=True)
+    base = cache / "base"
+    base.mkdir(exist_ok=True)
+    key = _cache_key(spec, r, None, 0)
+    shared = base / f".scene.cache-{key}"
+    out = {}
+    for theta in thetas:
+        for rel in rels:
+            name = cell_name(theta, rel)
+            path = cache / name / "scene.h5"
+            out[name] = path
+            if path.exists():
+                continue
+            path.parent.mkdir(exist_ok=True)
+            link = path.parent / shared.name
+            if shared.exists() and not link.exists():
+                link.symlink_to(shared.resolve(), target_is_directory=True)
+            dvs = replace(spec.sensor.dvs, pos_threshold=theta, neg_threshold=theta,
+                          threshold_mismatch=ThresholdMismatch(sigma=rel * theta) if rel > 0 else None)
+            cell = replace(spec, sensor=replace(spec.sensor, dvs=dvs))
+            t = time.perf_counter()
+            make_dataset(cell, r, path, seed=0, quiet=quiet, keep_cache=True)
+            if not shared.exists():   # the first cell rendered: its cache becomes the shared one
+                (path.parent / shared.name).rename(shared)
+                link.symlink_to(shared.resolve(), target_is_directory=True)
+            print(f"  {name}: {time.perf_counter() - t:.0f} s", flush=True)
+    return out
+
+
+def _job(job: dict) -> dict:
+    import torch
+
+    from bench_fidelity import run_one
+
+    torch.set_num_threads(1)
+    t = time.perf_counter()
+    m = run_one(Path(job["scene_path"]), job["overrides"], job["seed"], job["iterations"], job["init_points"],
+                Path(job["out"]))
+    return {**{k: job[k] for k in ("cell", "variant", "seed")}, "metrics": m, "wall": time.perf_counter() - t}
+
+
+def summarise(runs: list[dict]) -> dict:
+    table: dict = {}
+    for r in runs:
+        cell = table.setdefault(r["cell"], {}).setdefault(r["variant"], {"blur_view": [], "novel_view": [],
+                                                                          "train_s": [], "gaussians": []})
+        for view in ("blur_view", "novel_view"):
+            cell[view].append(r["metrics"][view]["psnr"])
+        cell["train_s"].append(r["metrics"].get("train_seconds", float("nan")))
+    out = {}
+    for c, vs in table.items():
+        for v, d in vs.items():
+            out.setdefault(c, {})[v] = {k: [float(np.mean(x)), float(np.std(x, ddof=1)) if len(x) > 1 else 0.0,
+                                            len(x)] for k, x in d.items() if x}
+    return out
+
+
+def plot(summary: dict, thetas, rels, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=False)
+    for ax, view in zip(axes, ("blur_view", "novel_view")):
+        for v, style in (("blur-only", "k--"), ("oracle", "k:")):
+            if v in summary.get("sensor_free", {}):
+                ax.axhline(summary["sensor_free"][v][view][0], color="k", ls=style[1:], lw=1, label=v)
+        for rel, col in zip(rels, ("C0", "C1", "C2", "C3", "C4")):
+            for var, ls in (("blur+event", "-"), ("blur+event-count", ":")):
+                ys = [summary.get(cell_name(t, rel), {}).get(var, {}).get(view, [np.nan])[0] for t in thetas]
+                if np.isfinite(ys).any():
+                    ax.plot(thetas, ys, ls, color=col, marker="o", ms=3,
+                            label=f"{var}, mismatch {rel:g}" if view == "blur_view" else None)
+        ax.set_xscale("log")
+        ax.set_xlabel("contrast threshold")
+        ax.set_ylabel("PSNR (dB)")
+        ax.set_title(view.replace("_", " "))
+    axes[0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(png, dpi=120)
+
+
+def main(argv=None) -> int:
+    from ev3dgs.train.jobs import default_jobs, run_parallel
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default=str(ROOT / "tools/scenes/heldout_shake.toml"))
+    ap.add_argument("--thresholds", type=float, nargs="+", default=[0.05, 0.1, 0.2, 0.4])
+    ap.add_argument("--mismatch", type=float, nargs="+", default=[0.0, 0.1, 0.4])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--variants", nargs="+", default=["blur-only", "blur+event", "blur+event-count", "oracle"],
+                    choices=tuple(VARIANTS))
+    ap.add_argument("--event-weights", type=float, nargs="+",
+                    help="replace blur+event by one variant per weight k (omega = k / 625, named blur+event@k)")
+    ap.add_argument("--iterations", type=int, default=1000)
+    ap.add_argument("--init-points", type=int, default=5000)
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--size", default="96x72")
+    ap.add_argument("--jobs", type=int, default=default_jobs())
+    ap.add_argument("--cache", default=str(ROOT / "tools/results/event_term_cache"))
+    ap.add_argument("--merge", nargs="+", default=[],
+                    help="earlier JSON outputs of this study whose runs join the summary and the plot (e.g. the "
+                         "count norm on fewer seeds)")
+    ap.add_argument("--json", required=True)
+    ap.add_argument("--plot")
+    a = ap.parse_args(argv)
+    w, h = (int(x) for x in a.size.split("x"))
+    render = dict(width=w, height=h, views=a.views, test_views=max(2, a.views // 3), subframes=17, samples=8)
+    t0 = time.perf_counter()
+    cells = make_cells(a.scene, a.thresholds, a.mismatch, render, Path(a.cache), quiet=True)
+    first = next(iter(cells.values()))
+    variants = dict(VARIANTS)
+    names = list(a.variants)
+    if a.event_weights and "blur+event" in names:
+        i = names.index("blur+event")
+        extra = {f"blur+event@{k:g}": dict(event_norm="noise", event_weight=k / 625) for k in a.event_weights}
+        names[i:i + 1] = list(extra)
+        variants.update(extra)
+    jobs = []
+    for seed in a.seeds:
+        for v in names:
+            targets = [("sensor_free", first)] if v in SENSOR_FREE else list(cells.items())
+            for cname, path in targets:
+                jobs.append(dict(cell=cname, variant=v, seed=seed, scene_path=str(path), overrides=variants[v],
+                                 iterations=a.iterations, init_points=a.init_points,
+                                 out=str(Path(a.cache) / "runs" / f"{cname}_{v}_s{seed}")))
+
+    def report(r):
+        m = r["metrics"]
+        print(f"  {r['cell']:14s} {r['variant']:17s} seed {r['seed']}: blur view {m['blur_view']['psnr']:.2f}, "
+              f"novel {m['novel_view']['psnr']:.2f} dB ({r['wall']:.0f} s)", flush=True)
+
+    runs = run_parallel(_job, jobs, a.jobs, report)
+    import json
+
+    for other in a.merge:
+        runs += [r for r in json.loads(Path(other).read_text())["runs"]
+                 if (r["cell"], r["variant"], r["seed"]) not in {(x["cell"], x["variant"], x["seed"]) for x in runs}]
+    summary = summarise(runs)
+
+    res = {"settings": {**vars(a), "render": render}, "cores": default_jobs(),
+           "summary": summary, "runs": runs, "seconds": time.perf_counter() - t0}
+    save_json(a.json, res)
+    if a.plot:
+        plot(summary, a.thresholds, a.mismatch, Path(a.plot))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
