@@ -10,9 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from ev3dgs import schema
 from ev3dgs.cli import main as cli
-from ev3dgs.geometry import intrinsics, look_at
 
 W, H = 32, 24
 FAST = ["--iterations", "5", "--init-points", "500", "--threads", "1", "--sh-degree", "0", "--checkpoint-every", "5"]
@@ -21,55 +19,9 @@ FAST = ["--iterations", "5", "--init-points", "500", "--threads", "1", "--sh-deg
 def make_scene(path) -> str:
     """4 shaky views (3 sub-frames over 100 ms) and 2 test views of a small Gaussian cloud, with simulated
     events; drawn with the plain-torch rasterizer."""
-    from ev3dgs.events import Events
-    from ev3dgs.sim import DVSSimulator
-    from ev3dgs.sim.isp import linear_to_srgb, srgb_to_linear
-    from ev3dgs.splat.model import GaussianModel
-    from ev3dgs.splat.rasterize import rasterization
+    from ev3dgs.blob_scene import blob_scene
 
-    rng = np.random.default_rng(0)
-    truth = GaussianModel.from_points(rng.uniform(-0.6, 0.6, (150, 3)),
-                                      rng.integers(30, 255, (150, 3)).astype(np.uint8), sh_degree=0,
-                                      init_opacity=0.8)
-    K = intrinsics(W, H, 50)
-    Kt = torch.as_tensor(K, dtype=torch.float32)
-
-    def draw(c2w):
-        vm = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
-        with torch.no_grad():
-            img, _, _ = rasterization(truth.means, truth.quats_normalised, truth.scales, truth.opacities, truth.sh,
-                                      vm, Kt, W, H, sh_degree=0, background=torch.ones(3), backend="reference")
-        return img.clamp(0, 1).numpy()
-
-    views, S = 4, 3
-    imgs, sharp, sharp_poses, poses, pose_t, exposure, parts = [], [], [], [], [], [], []
-    sim = DVSSimulator(H, W)
-    for v in range(views):
-        az = 2 * np.pi * v / views
-        eye = 3.0 * np.array([np.cos(az), np.sin(az), 0.5])
-        t = v * 150_000 + np.linspace(0, 100_000, S).astype(np.int64)
-        drift = rng.normal(0, 0.3, 3)
-        ps = [look_at(eye + drift * (k / (S - 1) - 0.5), [0, 0, 0]) for k in range(S)]
-        frames = np.stack([draw(p) for p in ps])
-        lin = srgb_to_linear(frames)
-        sim.restart()
-        parts.append(sim.feed(lin.astype(np.float32), t))
-        imgs.append((linear_to_srgb(lin.mean(0)) * 255 + 0.5).astype(np.uint8))
-        sharp.append((frames[S // 2] * 255 + 0.5).astype(np.uint8))
-        sharp_poses.append(ps[S // 2])
-        poses.append(np.stack(ps))
-        pose_t.append(t)
-        exposure.append((t[0], t[-1]))
-    test_poses = [look_at(3.0 * np.array([np.cos(a), np.sin(a), 0.4]), [0, 0, 0]) for a in (0.5, 2.5)]
-    sc = schema.Scene(
-        name="tiny", source="test", camera=schema.Camera(W, H, K=K, background=(1.0, 1.0, 1.0)),
-        events=Events.concatenate(parts), sensor=schema.EventSensor(), bounds=np.array([[-0.7] * 3, [0.7] * 3]),
-        train=schema.Train(images=np.stack(imgs), exposure=np.array(exposure), poses=np.stack(poses),
-                           pose_t=np.stack(pose_t), sharp=np.stack(sharp), sharp_poses=np.stack(sharp_poses)),
-        test=schema.Test(images=np.stack([(draw(p) * 255 + 0.5).astype(np.uint8) for p in test_poses]),
-                         poses=np.stack(test_poses)))
-    schema.write(sc, path)
-    return str(path)
+    return str(blob_scene(path, W, H, views=4, subframes=3, n=150, backend="reference", name="tiny", source="test"))
 
 
 @pytest.fixture(scope="module")

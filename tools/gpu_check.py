@@ -68,61 +68,11 @@ def install_command(wheels: str) -> list[str]:
 
 def synthetic_scene(path: Path, width: int, height: int, views: int = 6, subframes: int = 5, n: int = 300,
                     seed: int = 0) -> Path:
-    """A blob cloud seen from a shaky orbit (blurry frames averaged in linear light, events from the
-    simulator on the linear sub-frames, sharp test views): a scene file made without Blender."""
-    import numpy as np
-    import torch
+    """A blob cloud seen from a shaky orbit (ev3dgs.blob_scene): a scene file made without Blender."""
+    from ev3dgs.blob_scene import blob_scene
 
-    from ev3dgs import schema
-    from ev3dgs.events import Events
-    from ev3dgs.geometry import intrinsics, look_at
-    from ev3dgs.sim import DVSSimulator
-    from ev3dgs.sim.isp import linear_to_srgb, srgb_to_linear
-    from ev3dgs.splat.model import GaussianModel
-    from ev3dgs.splat.rasterize import rasterization
-
-    rng = np.random.default_rng(seed)
-    truth = GaussianModel.from_points(rng.uniform(-0.6, 0.6, (n, 3)), rng.integers(30, 255, (n, 3)).astype(np.uint8),
-                                      sh_degree=0, init_opacity=0.8)
-    K = intrinsics(width, height, 50)
-    Kt = torch.as_tensor(K, dtype=torch.float32)
-
-    def draw(c2w):
-        vm = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
-        with torch.no_grad():
-            img, _, _ = rasterization(truth.means, truth.quats_normalised, truth.scales, truth.opacities, truth.sh,
-                                      vm, Kt, width, height, sh_degree=0, background=torch.ones(3), backend="cpu")
-        return img.clamp(0, 1).numpy()
-
-    sim = DVSSimulator(height, width)
-    imgs, sharp, sharp_poses, poses, pose_t, exposure, parts = [], [], [], [], [], [], []
-    for v in range(views):
-        az = 2 * np.pi * v / views
-        eye = 3.0 * np.array([np.cos(az), np.sin(az), 0.5])
-        t = v * 150_000 + np.linspace(0, 100_000, subframes).astype(np.int64)
-        drift = rng.normal(0, 0.3, 3)
-        ps = [look_at(eye + drift * (k / (subframes - 1) - 0.5), [0, 0, 0]) for k in range(subframes)]
-        frames = np.stack([draw(p) for p in ps])
-        lin = srgb_to_linear(frames)
-        sim.restart()
-        parts.append(sim.feed(lin.astype(np.float32), t))
-        imgs.append((linear_to_srgb(lin.mean(0)) * 255 + 0.5).astype(np.uint8))
-        sharp.append((frames[subframes // 2] * 255 + 0.5).astype(np.uint8))
-        sharp_poses.append(ps[subframes // 2])
-        poses.append(np.stack(ps))
-        pose_t.append(t)
-        exposure.append((t[0], t[-1]))
-    test_poses = [look_at(3.0 * np.array([np.cos(a), np.sin(a), 0.4]), [0, 0, 0]) for a in (0.5, 2.5)]
-    sc = schema.Scene(
-        name="blobs", source="tools/gpu_check.py", camera=schema.Camera(width, height, K=K, background=(1.0, 1.0, 1.0)),
-        events=Events.concatenate(parts), sensor=schema.EventSensor(), bounds=np.array([[-0.7] * 3, [0.7] * 3]),
-        train=schema.Train(images=np.stack(imgs), exposure=np.array(exposure), poses=np.stack(poses),
-                           pose_t=np.stack(pose_t), sharp=np.stack(sharp), sharp_poses=np.stack(sharp_poses)),
-        test=schema.Test(images=np.stack([(draw(p) * 255 + 0.5).astype(np.uint8) for p in test_poses]),
-                         poses=np.stack(test_poses)))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    schema.write(sc, path)
-    return path
+    return blob_scene(path, width, height, views=views, subframes=subframes, n=n, seed=seed,
+                      source="tools/gpu_check.py")
 
 
 def time_training(scene: str, variant: str, steps: int, device: str, backend: str, init_points: int,
