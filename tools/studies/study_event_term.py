@@ -127,6 +127,8 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
                     ax.plot(thetas, ys, ls, color=col, marker="o", ms=3,
                             label=f"{var}, mismatch {rel:g}" if view == "blur_view" else None)
         ax.set_xscale("log")
+        ax.set_xticks(thetas, [f"{t:g}" for t in thetas])
+        ax.minorticks_off()
         ax.set_xlabel("contrast threshold")
         ax.set_ylabel("PSNR (dB)")
         ax.set_title(view.replace("_", " "))
