@@ -95,6 +95,8 @@ def test_update_floor_tracks_the_estimate_and_is_bounded():
         f = update_floor(f, 0.02)
     assert f == pytest.approx(0.02, rel=1e-6)
     assert update_floor(0.5, -1.0) >= FLOOR_MIN
+    assert update_floor(0.02, float("nan")) == 0.02        # a non-finite step leaves the floor as it was
+    assert update_floor(None, float("inf")) == FLOOR_MIN
 
 
 def test_floor_estimate_is_the_excess_over_the_count_noise_in_intensity_units():
@@ -104,7 +106,7 @@ def test_floor_estimate_is_the_excess_over_the_count_noise_in_intensity_units():
     c = torch.zeros(K, 2, H, W, dtype=torch.float64)
     log_l = torch.full((K, H, W), math.log(I), dtype=torch.float64)
     log_l[1] += 0.1                                   # r = 0.1 everywhere (no events: E = 0)
-    _, est = noise_event_loss(log_l, c, [(0, 1)], 0.2, 0.2, rel_mismatch=0.0, floor=1e-2)
+    _, est = noise_event_loss(log_l, c, [(0, 1)], 0.2, 0.2, rel_mismatch=0.0, floor=1e-2)   # knee 1e-3 < I
     v = 0.04 / 6
     g = 0.5 * (I ** -2 + (I * math.exp(0.1)) ** -2)
     assert est == pytest.approx((0.01 - v) / g, rel=1e-9)
@@ -126,7 +128,7 @@ def test_noise_loss_finite_with_finite_bounded_gradients(seed, theta, rel, scale
     loss.backward()
     assert math.isfinite(float(loss.detach())) and float(loss.detach()) >= 0
     assert torch.isfinite(log_l.grad).all() and torch.isfinite(tp.grad)
-    f = floor if floor is not None else est
+    f = floor if floor is not None else max(est, FLOOR_MIN)
     # d loss / d log_l[k] = sum over the pairs holding k of +-2 r / (v + f) / n, |r| <= max |r|
     n = len(pairs) * H * W
     with torch.no_grad():

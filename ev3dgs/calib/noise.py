@@ -296,5 +296,6 @@ def refractory(rec: Recording, exclude, rng, boot: int = 200) -> Value:
         w = np.bincount(rng.integers(0, len(upix), len(upix)), minlength=len(upix))
         sel = np.repeat(iei_s, np.repeat(w, cnt))
         bs.append(np.quantile(sel, IEI_QUANTILE))
-    return Value(r, (float(np.std(bs, ddof=1)) if len(bs) > 1 else None), f"{100 * IEI_QUANTILE:g} % quantile of {len(iei)} intervals "
+    se = float(np.std(bs, ddof=1)) if len(bs) > 1 else None
+    return Value(r, se, f"{100 * IEI_QUANTILE:g} % quantile of {len(iei)} intervals "
                  f"(minimum {int(iei.min())} us); an upper bound: R + C/g of the fastest edges")

@@ -34,8 +34,9 @@ pixels whose APS and DVS disagree) are dropped and the system solved again.
 Frame noise: it enters dL with zero mean (so not the sums), but it decides which pairs pass |dL| > tau; tau is
 4 standard deviations of dL predicted from the frame noise (measured on the quietest pixels of each intensity
 band) so that noise alone selects almost no pair, and at least 0.02. It still biases: pairs that noise
-pushed over the cut are kept, those it pushed under are not (+0-5 % on synthetic recordings). Under-exposed pixels (less than
-aps.UNDER_DN above the dark level) and saturated pixels are masked in every pair they touch.
+pushed over the cut are kept, those it pushed under are not (+0-5 % on synthetic recordings).
+Under-exposed pixels (less than aps.UNDER_DN above the dark level) and saturated pixels are masked in every
+pair they touch.
 
 Dark level and log knee: the fitted thresholds must not depend on intensity. A wrong APS dark level bends
 log(I - dark) at the dark end only, and so does the DVS photoreceptor's own dark current (the simulator's

@@ -251,9 +251,7 @@ def pose_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[t
     return _scaled_mse(residual, tp, tn)
 
 
-
 # --------------------------------------------------------------------------- event term with a noise model
-EVENT_NORMS = ("noise", "count")
 FLOOR_MIN = 1e-4      # intensity^2 (1 = white): the model floor never goes below a 1 % error of full scale
                       # (8-bit frames resolve 0.4 %; nothing a 3DGS at these sizes fits is finer)
 FLOOR_MOMENTUM = 0.9  # exponential average of the model's excess squared residual over steps
@@ -300,7 +298,8 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     size does not depend on the threshold; a pixel-pair weighs by how precisely its counts measure the
     change, and never above 1 / (floor g), so finer thresholds sharpen the target without letting the term
     outgrow the blur loss (the count norm, residual / theta, grows as 1 / theta^2).
-    Returns (loss, this step's floor estimate: the mean of (r^2 - v) / g, a detached float)."""
+    Returns (loss, this step's floor estimate: the mean of (r^2 - v) / g, a detached float; update_floor
+    bounds it)."""
     if log_l.ndim != 3 or counts.ndim != 4 or counts.shape[0] != log_l.shape[0]:
         raise ValueError(f"log_l must be (K, H, W) and counts (K, 2, H, W), got {tuple(log_l.shape)} and "
                          f"{tuple(counts.shape)}")
@@ -321,9 +320,9 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
         else:
             inv2 = log_l.detach().exp().clamp(min=knee) ** -2
             g = 0.5 * (inv2.index_select(0, idx[:, 0]) + inv2.index_select(0, idx[:, 1]))
-        estimate = max(float(torch.mean((residual * residual - v) / g)), FLOOR_MIN)
+        estimate = float(torch.mean((residual * residual - v) / g))
     if floor is None:
-        floor = estimate
+        floor = max(estimate, FLOOR_MIN) if math.isfinite(estimate) else FLOOR_MIN
     loss = torch.mean(residual * residual / (v + floor * g))
     return loss, estimate
 
@@ -332,7 +331,9 @@ def update_floor(floor: float | None, estimate: float) -> float:
     """The model's squared error beyond the counts' own noise (noise_event_loss's estimate of one step) as an
     exponential average over steps (None: the first step's value), never below FLOOR_MIN. Early in training
     the rendering is far from the counts, the floor is large and the event term weighs little; it tightens
-    as the model fits."""
+    as the model fits. A non-finite estimate (a step the trainer's NaN guard stops) leaves the floor as it was."""
+    if not math.isfinite(estimate):
+        return FLOOR_MIN if floor is None else floor
     estimate = max(estimate, FLOOR_MIN)
     if floor is None:
         return estimate

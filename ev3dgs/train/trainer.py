@@ -1,9 +1,9 @@
 """The training loop: blur rendering loss over b+1 poses of each exposure, plus the event rendering loss.
 
     loss = (1 - lambda) * MSE(mean_k render_k, blurry) + lambda * (1 - SSIM(...))
-         + omega * mean(r ** 2 / (v + floor)),   r = (log L_k2 - log L_k1) - E[change | ON, OFF counts]
+         + omega * mean(r ** 2 / (v + f g)),   r = (log L_k2 - log L_k1) - E[change | ON, OFF counts]
          (--event-norm noise, the default: losses.noise_event_loss; v = the counts' expected squared error
-         from quantisation, threshold mismatch and noise events, floor = the model's own, tracked over steps)
+         from quantisation, threshold mismatch and noise events, f g = the model's own, tracked over steps)
          or + omega * mean((r / theta_mean) ** 2)   (--event-norm count: losses.pose_event_loss)
          E = theta_on * n_on - theta_off * n_off, per the scene's count convention
 
