@@ -33,8 +33,9 @@ def test_recovery(tmp_path, seed):
     make_recording(rec, truth, seed=seed)
     cal = calibrate_recording(rec, boot=60, seed=seed)
     th, nz = cal.thresholds, cal.noise
-    # the tolerances (tools/studies/study_calibrate.py: threshold bias +0-4 % after the run-start and
-    # refractory corrections, from frame noise deciding which pairs are selected)
+    # 10 % for both thresholds: tools/studies/study_calibrate.py measures a bias of +0.2 % (C_on) and +4.9 %
+    # (C_off, seed s.d. 2.1 %, largest 9.1 % over 8 seeds) after the run-start and refractory corrections, left
+    # by frame noise deciding which pairs pass the cut: 10 % is the mean bias plus 2.5 seed s.d.
     assert th.c_on.value == pytest.approx(truth.pos_threshold, rel=0.10)
     assert th.c_off.value == pytest.approx(truth.neg_threshold, rel=0.10)
     assert th.sigma.value == pytest.approx(truth.sigma, rel=0.25)
