@@ -236,19 +236,28 @@ def pose_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[t
     data it is exactly the old mean((delta / theta - n) ** 2), and --event-weight keeps its meaning (weight
     per squared event). Thresholds may be 0-d tensors requiring grad (learnable). Non-negative: the trainer
     ADDS it to the blur loss (the published Ev3DGS subtracted it)."""
-    if log_l.ndim != 3 or counts.ndim != 4 or counts.shape[0] != log_l.shape[0]:
-        raise ValueError(f"log_l must be (K, H, W) and counts (K, 2, H, W), got {tuple(log_l.shape)} and "
-                         f"{tuple(counts.shape)}")
+    _check_event_shapes(log_l, counts)
     tp, tn = _thetas(theta_pos, theta_neg, log_l)
     if len(pairs) == 0:
         return log_l.sum() * 0.0
+    residual, _ = _pair_residuals(log_l, counts, pairs, tp, tn, convention)
+    return _scaled_mse(residual, tp, tn)
+
+
+def _check_event_shapes(log_l: torch.Tensor, counts: torch.Tensor) -> None:
+    if log_l.ndim != 3 or counts.ndim != 4 or counts.shape[0] != log_l.shape[0]:
+        raise ValueError(f"log_l must be (K, H, W) and counts (K, 2, H, W), got {tuple(log_l.shape)} and "
+                         f"{tuple(counts.shape)}")
+
+
+def _pair_residuals(log_l, counts, pairs, tp, tn, convention) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P, H, W) residuals (log_l[k2] - log_l[k1]) - (E_k2 - E_k1) for the pairs, and the (P, 2) pair index."""
     d = log_l - expected_log_change(counts.to(log_l.dtype), tp, tn, convention)
     idx = torch.as_tensor([tuple(pr) for pr in pairs], dtype=torch.long, device=log_l.device)
     # index_select, not d[idx]: the backward of advanced indexing with repeated indices (every pose is in
     # several pairs) is index_put_(accumulate=True), whose multi-threaded CPU kernel adds in a racy order;
     # index_select's backward (index_add_) adds slice by slice in index order: bitwise reproducible
-    residual = d.index_select(0, idx[:, 1]) - d.index_select(0, idx[:, 0])
-    return _scaled_mse(residual, tp, tn)
+    return d.index_select(0, idx[:, 1]) - d.index_select(0, idx[:, 0]), idx
 
 
 # --------------------------------------------------------------------------- event term with a noise model
@@ -300,9 +309,7 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     outgrow the blur loss (the count norm, residual / theta, grows as 1 / theta^2).
     Returns (loss, this step's floor estimate: the mean of (r^2 - v) / g, a detached float; update_floor
     bounds it)."""
-    if log_l.ndim != 3 or counts.ndim != 4 or counts.shape[0] != log_l.shape[0]:
-        raise ValueError(f"log_l must be (K, H, W) and counts (K, 2, H, W), got {tuple(log_l.shape)} and "
-                         f"{tuple(counts.shape)}")
+    _check_event_shapes(log_l, counts)
     if not (rel_mismatch >= 0 and math.isfinite(rel_mismatch)):
         raise ValueError(f"rel_mismatch must be finite and >= 0, got {rel_mismatch!r}")
     if floor is not None and not (floor > 0 and math.isfinite(floor)):
@@ -310,9 +317,7 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     tp, tn = _thetas(theta_pos, theta_neg, log_l)
     if len(pairs) == 0:
         return log_l.sum() * 0.0, FLOOR_MIN
-    d = log_l - expected_log_change(counts.to(log_l.dtype), tp, tn, convention)
-    idx = torch.as_tensor([tuple(pr) for pr in pairs], dtype=torch.long, device=log_l.device)
-    residual = d.index_select(0, idx[:, 1]) - d.index_select(0, idx[:, 0])   # index_select: see pose_event_loss
+    residual, idx = _pair_residuals(log_l, counts, pairs, tp, tn, convention)
     v = count_variance(counts, idx, tp.detach(), tn.detach(), rel_mismatch, noise_events)
     with torch.no_grad():
         if knee is None:

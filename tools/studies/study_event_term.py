@@ -97,7 +97,7 @@ def summarise(runs: list[dict]) -> dict:
     table: dict = {}
     for r in runs:
         cell = table.setdefault(r["cell"], {}).setdefault(r["variant"], {"blur_view": [], "novel_view": [],
-                                                                          "train_s": [], "gaussians": []})
+                                                                          "train_s": []})
         for view in ("blur_view", "novel_view"):
             cell[view].append(r["metrics"][view]["psnr"])
         cell["train_s"].append(r["metrics"].get("train_seconds", float("nan")))
@@ -190,9 +190,12 @@ def main(argv=None) -> int:
     runs = run_parallel(_job, jobs, a.jobs, report)
     import json
 
+    have = {(r["cell"], r["variant"], r["seed"]) for r in runs}
     for other in a.merge:
-        runs += [r for r in json.loads(Path(other).read_text())["runs"]
-                 if (r["cell"], r["variant"], r["seed"]) not in {(x["cell"], x["variant"], x["seed"]) for x in runs}]
+        extra = [r for r in json.loads(Path(other).read_text())["runs"]
+                 if (r["cell"], r["variant"], r["seed"]) not in have]
+        have |= {(r["cell"], r["variant"], r["seed"]) for r in extra}
+        runs += extra
     summary = summarise(runs)
 
     res = {"settings": {**vars(a), "render": render}, "cores": default_jobs(),
