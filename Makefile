@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: setup test test-slow demo docs bench study-quick study study-event-term bench-fidelity bench-fidelity-quick clean
+.PHONY: setup test test-slow demo docs bench study-quick study study-event-term study-attribution bench-fidelity bench-fidelity-quick clean
 
 setup: $(STAMP)
 
@@ -59,6 +59,16 @@ study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur-only blur+event oracle \
 		--merge tools/results/study_event_term_count.json \
 		--json tools/results/study_event_term.json --plot tools/results/study_event_term.png
+
+# where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs) and
+# lowlight (frame noise), two seeds (~1.5 h on 2 cores after study-event-term)
+study-attribution: setup
+	$(BIN)/python tools/studies/study_attribution.py \
+		--json tools/results/study_attribution.json --plot tools/results/study_attribution.png
+	$(BIN)/python tools/studies/study_attribution.py --scene lowlight --theta 0.2 --mismatch 0.15 --samples 16 \
+		--variants naive blur-only blur+event oracle oracle-noisy info-oracle blur-ideal@17 blur-clean@17 \
+		blur-only@17 --cache tools/results/attribution_cache_lowlight \
+		--json tools/results/study_attribution_lowlight.json --plot tools/results/study_attribution_lowlight.png
 
 # naive / blur-only / blur+event / sharp oracle on the built-in scenes, 3 seeds (~1 h on 2 cores);
 # the quick one is lego, one seed, small size (<= 10 minutes)

@@ -1,0 +1,143 @@
+"""tools/studies/study_attribution.py: the scene files it derives from a render cache and its table arithmetic.
+
+A tiny cell is made the way make_dataset makes one (the blurry frame through blur_frames, the sharp one through
+the same ISP without noise) from random linear sub-frames, beside a render cache of those sub-frames; the derived
+files are checked against a second implementation (the simulator's numpy sRGB functions, not the trainer's torch
+ones) and against the sub-frames themselves.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+for sub in ("tools", "tools/bench", "tools/studies"):
+    sys.path.insert(0, str(ROOT / sub))
+
+import study_attribution as sa  # noqa: E402
+
+from ev3dgs import schema  # noqa: E402
+from ev3dgs.events import Events  # noqa: E402
+from ev3dgs.geometry import intrinsics, look_at  # noqa: E402
+from ev3dgs.sim.blur import blur_frames  # noqa: E402
+from ev3dgs.sim.dataset import _to_srgb  # noqa: E402
+from ev3dgs.sim.isp import linear_to_srgb, srgb_to_linear  # noqa: E402
+from ev3dgs.sim.scenes import load_scene  # noqa: E402
+
+# the tiny cells have no events (the derived files do not need them)
+pytestmark = pytest.mark.filterwarnings("ignore::ev3dgs.errors.SchemaWarning")
+S = sa.SUBFRAMES
+W, H, VIEWS = 10, 8, 3
+
+
+def make_cell(tmp_path: Path, scene: str, seed: int = 0,
+              highlight: bool = False) -> tuple[Path, list[np.ndarray], list[np.ndarray]]:
+    spec = load_scene(scene)
+    rng = np.random.default_rng(seed)
+    cell = tmp_path / "cell" / "scene.h5"
+    cache = cell.parent / ".scene.cache-0123"
+    cache.mkdir(parents=True)
+    frames_all, poses_all = [], []
+    imgs, sharp, sharp_poses, poses, pose_t, exposure = [], [], [], [], [], []
+    for v in range(VIEWS):
+        frames = rng.uniform(0.02, 0.9, (S, H, W, 3)).astype(np.float32)
+        if highlight and v == 0:      # a 3x3 highlight at 5x full scale for 4 of the 17 sub-frames of view 0
+            frames[3:7, 2:5, 4:7] = 5.0
+        eye = np.array([3.0 * np.cos(v), 3.0 * np.sin(v), 0.5])
+        ps = np.stack([look_at(eye + [0.01 * k, 0, 0], [0, 0, 0]) for k in range(S)])
+        np.savez(cache / f"view_{v:04d}.npz", frames=frames, poses=ps)
+        t = v * 150_000 + np.linspace(0, 100_000, S).astype(np.int64)
+        imgs.append(blur_frames(frames, spec.sensor.isp, spec.sensor.sensor_noise, seed=v))
+        sharp.append(_to_srgb(frames[S // 2], spec))
+        sharp_poses.append(ps[S // 2])
+        poses.append(ps)
+        pose_t.append(t)
+        exposure.append((t[0], t[-1]))
+        frames_all.append(frames)
+        poses_all.append(ps)
+    sc = schema.Scene(
+        name=scene, source="blender", camera=schema.Camera(W, H, K=intrinsics(W, H, 50), background=(0, 0, 0)),
+        events=Events.concatenate([]), sensor=schema.EventSensor(), bounds=np.array([[-1.0] * 3, [1.0] * 3]),
+        train=schema.Train(images=np.stack(imgs), exposure=np.array(exposure), poses=np.stack(poses),
+                           pose_t=np.stack(pose_t), sharp=np.stack(sharp), sharp_poses=np.stack(sharp_poses),
+                           transfer="srgb"),
+        test=schema.Test(images=np.stack(sharp[:1]), poses=np.stack(sharp_poses[:1])))
+    schema.write(sc, cell)
+    return cell, frames_all, poses_all
+
+
+def test_info_oracle_holds_every_sub_frame_at_its_pose(tmp_path):
+    cell, frames, poses = make_cell(tmp_path, "materials")
+    paths = sa.derived_scenes("materials", cell, tmp_path / "derived")
+    assert set(paths) == {"info", "ideal"}          # materials has no frame noise: no clean/noisy files
+    info = schema.read(paths["info"])
+    spec = load_scene("materials")
+    assert len(info.train) == VIEWS * S
+    for v in range(VIEWS):
+        for k in (0, S // 2, S - 1):
+            np.testing.assert_array_equal(np.asarray(info.train.sharp[v * S + k]), _to_srgb(frames[v][k], spec))
+            np.testing.assert_allclose(info.train.sharp_poses[v * S + k], poses[v][k])
+
+
+def test_ideal_blur_is_the_trainers_blur_model_of_the_sharp_sub_frames(tmp_path):
+    cell, frames, _ = make_cell(tmp_path, "materials")
+    paths = sa.derived_scenes("materials", cell, tmp_path / "derived")
+    ideal = np.asarray(schema.read(paths["ideal"]).train.images).astype(int)
+    spec = load_scene("materials")
+    for v in range(VIEWS):
+        srgb = np.stack([_to_srgb(f, spec) for f in frames[v]]).astype(np.float64) / 255.0
+        want = linear_to_srgb(srgb_to_linear(srgb).mean(axis=0)) * 255.0   # numpy path, not the trainer's torch one
+        # the two implementations agree to float rounding (~1e-12 DN); the stored frame is rounded once
+        assert np.abs(ideal[v] - want).max() <= 0.5 + 1e-6
+    # and it is not simply the scene's blurry frame (the ISP is not the sRGB transfer the trainer models)
+    real = np.asarray(schema.read(cell).train.images).astype(int)
+    assert np.abs(real - ideal).max() > 0
+
+
+def test_noisy_scene_adds_clean_blur_and_noisy_sharp_frames(tmp_path):
+    cell, frames, _ = make_cell(tmp_path, "lowlight")
+    paths = sa.derived_scenes("lowlight", cell, tmp_path / "derived")
+    assert set(paths) == {"info", "ideal", "clean", "noisy"}
+    spec = load_scene("lowlight")
+    sc, clean, noisy = (schema.read(p).train for p in (cell, paths["clean"], paths["noisy"]))
+    for v in range(VIEWS):
+        np.testing.assert_array_equal(np.asarray(clean.images[v]), blur_frames(frames[v], spec.sensor.isp, None))
+    # the noisy oracle frames: the clean sharp frames plus noise (ISO 1600: several DN at these levels)
+    a, b = np.asarray(sc.sharp).astype(float), np.asarray(noisy.sharp).astype(float)
+    assert (b - a).std() > 1.0
+    assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.9
+    np.testing.assert_array_equal(np.asarray(noisy.images), np.asarray(sc.images))  # only the sharp frames change
+
+
+def test_a_render_cache_of_other_frames_is_refused(tmp_path):
+    cell, frames, poses = make_cell(tmp_path, "materials")
+    cache = next(cell.parent.glob(".scene.cache-*"))
+    np.savez(cache / "view_0001.npz", frames=frames[2], poses=poses[1])   # another view's sub-frames
+    with pytest.raises(SystemExit, match="view 1"):
+        sa.derived_scenes("materials", cell, tmp_path / "derived")
+
+
+def test_blur_model_residual_sits_where_a_sub_frame_exceeds_full_scale(tmp_path):
+    cell, _, _ = make_cell(tmp_path, "materials", highlight=True)
+    paths = sa.derived_scenes("materials", cell, tmp_path / "derived")
+    r = sa.blur_model_residual(cell, paths["ideal"])
+    assert r["pixels_above_full_scale"] == pytest.approx(9 / (VIEWS * H * W))
+    # there the blurry frame integrates 4/17 of 5x full scale (+~1 linear, saturating), the model of clipped
+    # sub-frames at most 4/17 of 1: tens of DN; everywhere else the two differ by the sub-frames' 8-bit
+    # rounding and the ISP's gamut clip, a few DN at most
+    assert r["share_above_full_scale"] > 0.9
+    assert r["share_saturated"] > 0.5
+    assert 10 < r["psnr_db"] < 60
+
+
+def test_attribution_pairs_seeds():
+    summary = {"oracle": {"blur_view": [30.0, 31.0], "novel_view": [28.0, 28.5], "seeds": [0, 1]},
+               "info-oracle": {"blur_view": [32.0, 32.5, 40.0], "novel_view": [29.0, 29.0, 40.0],
+                               "seeds": [0, 1, 2]}}
+    rows = sa.attribution(summary)
+    assert len(rows) == 1 and rows[0]["without"] == "info-oracle" and rows[0]["with"] == "oracle"
+    assert rows[0]["blur_view"] == [1.75, 1.5, 2.0, 2]      # seed 2 has no oracle run: not paired
+    assert rows[0]["novel_view"] == [0.75, 0.5, 1.0, 2]

@@ -1,0 +1,340 @@
+"""Study: where the gap between blur+event and the sharp oracle comes from, one cause at a time.
+
+One scene (default tools/scenes/heldout_shake.toml, 12 views at 96x72, 17 rendered sub-frames per exposure) is
+trained under variants that each remove one cause of error, on the same frames, poses and seeds:
+
+* ``info-oracle``: plain 3DGS on all 17 sharp sub-frames of every exposure at their own poses (the most any
+  deblurring could recover from these exposures);
+* ``oracle``: plain 3DGS on the sharp mid-exposure frame of each view (the evaluation's usual upper bound);
+* ``blur-ideal@17``: blur-only with 17 sub-poses (the rendered sub-frames' own poses) against the blurry frame the
+  trainer's blur model would make from the sharp sub-frames (their sRGB decoded, averaged in linear light,
+  encoded): no blur-model mismatch, no sub-pose discretisation, no frame noise;
+* ``blur-only@17``: the same 17 sub-poses against the scene's real blurry frame (ISP, 8-bit, frame noise): the
+  blur model's cost;
+* scenes with frame noise (``[sensor.sensor_noise]``) add ``blur-clean@17`` (the ISP's blurry frame without the
+  noise), splitting that cost into blur model and noise, and ``oracle-noisy``, the fair oracle: the sharp frames
+  with the same frame noise as the blurry ones (the clean oracle is also a denoiser);
+* ``blur-only``: 5 sub-poses (the default): the sub-pose discretisation's cost;
+* ``blur+event`` (5 sub-poses), ``blur+event@17`` and ``blur+event@4pairs`` (4 random pose pairs per step
+  instead of all 10) at one threshold cell (default 0.05 with 10 % relative mismatch): what the events add, what
+  more sub-poses add to them, and what the pair selection costs;
+* ``naive``: plain 3DGS on the blurry frame at the mid pose (for comparison, no step of the table);
+* ``*@3000``: blur-only, blur+event and the oracle at 3x the steps (first seed only): the optimisation length.
+
+The threshold and mismatch (quantisation) costs come from ``study_event_term.py`` on the same frames. Scenes are
+shared with that study's cache (tools/results/event_term_cache), so its runs are reused; the two derived scene
+files (info-oracle, blur-ideal) are written there from the render cache. Every model is scored on the cell's
+scene file (blur views: the 12 sharp mid-exposure frames; novel views: /test).
+
+    python tools/studies/study_attribution.py --json tools/results/study_attribution.json \\
+        --plot tools/results/study_attribution.png [--seeds 0 1] [--theta 0.05] [--mismatch 0.1]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))
+sys.path.insert(0, str(ROOT / "tools" / "bench"))
+sys.path.insert(0, str(ROOT / "tools" / "studies"))
+
+from pareto import save_json  # noqa: E402
+
+SUBFRAMES = 17
+# variant -> (training scene: "cell" | "free" (the events-free cell the sensor-free runs share) | "info" |
+# "ideal", TrainConfig overrides, step multiplier, first seed only)
+VARIANTS = {
+    "info-oracle": ("info", dict(oracle=True), 1, False),
+    "oracle": ("free", dict(oracle=True), 1, False),
+    "oracle-noisy": ("noisy", dict(oracle=True), 1, False),
+    "blur-ideal@17": ("ideal", dict(event_loss=False, subposes=SUBFRAMES), 1, False),
+    "blur-clean@17": ("clean", dict(event_loss=False, subposes=SUBFRAMES), 1, False),
+    "blur-only@17": ("free", dict(event_loss=False, subposes=SUBFRAMES), 1, False),
+    "blur-only": ("free", dict(event_loss=False), 1, False),
+    "naive": ("free", dict(naive=True), 1, False),
+    "blur+event": ("cell", dict(event_norm="noise"), 1, False),
+    "blur+event@17": ("cell", dict(event_norm="noise", subposes=SUBFRAMES), 1, False),
+    "blur+event@4pairs": ("cell", dict(event_norm="noise", event_pairs=4), 1, False),
+    "oracle@3000": ("free", dict(oracle=True), 3, True),
+    "blur-only@3000": ("free", dict(event_loss=False), 3, True),
+    "blur+event@3000": ("cell", dict(event_norm="noise"), 3, True),
+}
+# the table: (cause, the variant without it, the variant with it); the cost is the PSNR difference
+STEPS = [
+    ("information: one sharp frame per view instead of 17", "info-oracle", "oracle"),
+    ("one blurry frame, ideal blur model, 17 sub-poses", "oracle", "blur-ideal@17"),
+    ("frame noise in the sharp frames (oracle)", "oracle", "oracle-noisy"),
+    ("blur model (ISP, 8-bit) against the ideal one", "blur-ideal@17", "blur-clean@17"),
+    ("frame noise in the blurry frames (17 sub-poses)", "blur-clean@17", "blur-only@17"),
+    ("blur model and frame noise against the ideal one", "blur-ideal@17", "blur-only@17"),
+    ("5 sub-poses instead of 17 (blur-only)", "blur-only@17", "blur-only"),
+    ("events added (5 sub-poses)", "blur-only", "blur+event"),
+    ("5 sub-poses instead of 17 (blur+event)", "blur+event@17", "blur+event"),
+    ("4 random pairs per step instead of all", "blur+event", "blur+event@4pairs"),
+    ("1000 steps instead of 3000 (blur+event)", "blur+event@3000", "blur+event"),
+    ("1000 steps instead of 3000 (oracle)", "oracle@3000", "oracle"),
+    ("1000 steps instead of 3000 (blur-only)", "blur-only@3000", "blur-only"),
+]
+
+
+def _render_cache(scene_file: Path) -> Path:
+    """The render cache study_event_term's cells link to (view_NNNN.npz: 17 linear sub-frames and poses)."""
+    found = sorted(p for p in scene_file.parent.glob(".scene.cache-*") if p.is_dir())
+    if not found:
+        raise SystemExit(f"no render cache beside {scene_file}: run study_event_term.py's cells first")
+    return found[0]
+
+
+def derived_scenes(spec_path: str, cell: Path, out_dir: Path) -> dict[str, Path]:
+    """Write (once) the scene files made from ``cell`` and its render cache: "info" (every sharp sub-frame a
+    view), "ideal" (blurry frames as the trainer's blur model makes them) and, for a scene with frame noise,
+    "clean" (the ISP's blurry frames without the noise) and "noisy" (sharp frames with it)."""
+    import torch
+
+    from ev3dgs import schema
+    from ev3dgs.sim.blur import blur_frames
+    from ev3dgs.sim.dataset import _to_srgb
+    from ev3dgs.sim.scenes import load_scene
+    from ev3dgs.train.losses import linear_to_srgb_torch, srgb_to_linear_torch
+
+    spec = load_scene(spec_path)
+    isp, noise = spec.sensor.isp, spec.sensor.sensor_noise
+    kinds = ("info", "ideal") + (("clean", "noisy") if noise is not None else ())
+    names = {"info": "info_oracle.h5", "ideal": "blur_ideal.h5", "clean": "blur_clean.h5", "noisy": "sharp_noisy.h5"}
+    paths = {k: out_dir / names[k] for k in kinds}
+    if all(p.exists() for p in paths.values()):
+        return paths
+    sc = schema.read(cell)
+    tr = sc.train
+    cache = _render_cache(cell)
+    subs, sub_poses, ideal, clean, noisy = [], [], [], [], []
+    for v in range(len(tr)):
+        r = np.load(cache / f"view_{v:04d}.npz")
+        frames, poses = r["frames"][:SUBFRAMES], r["poses"][:SUBFRAMES]
+        mid = SUBFRAMES // 2
+        if not np.allclose(poses[mid], tr.sharp_poses[v], atol=1e-9):
+            raise SystemExit(f"{cache}: view {v}'s cached poses are not the scene's")
+        srgb = np.stack([_to_srgb(f, spec) for f in frames])          # (17, H, W, 3) uint8, as /train/sharp
+        if not np.array_equal(srgb[mid], np.asarray(tr.sharp[v])):
+            raise SystemExit(f"{cache}: view {v}'s mid sub-frame is not the scene's sharp frame")
+        # make_dataset's blurry frame (dataset seed 0: noise seed = view index): the cache is this scene's
+        if not np.array_equal(blur_frames(frames, isp, noise, seed=v), np.asarray(tr.images[v])):
+            raise SystemExit(f"{cache}: view {v}'s blurry frame does not come from these sub-frames")
+        subs.append(srgb)
+        sub_poses.append(poses)
+        lin = srgb_to_linear_torch(torch.from_numpy(srgb).double() / 255.0).mean(dim=0)
+        ideal.append(np.clip(np.rint(linear_to_srgb_torch(lin).numpy() * 255.0), 0, 255).astype(np.uint8))
+        if noise is not None:
+            clean.append(blur_frames(frames, isp, None))
+            # the mid sub-frame through the same raw-domain noise (another stream than the blurry frame's)
+            noisy.append(blur_frames(frames[mid:mid + 1], isp, noise, seed=1_000_003 + v))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rep = lambda a: np.repeat(np.asarray(a), SUBFRAMES, axis=0)  # noqa: E731
+    made = {"info": replace(tr, images=np.concatenate(subs), exposure=rep(tr.exposure), poses=rep(tr.poses),
+                            pose_t=rep(tr.pose_t), sharp=np.concatenate(subs),
+                            sharp_poses=np.concatenate(sub_poses)),
+            "ideal": replace(tr, images=np.stack(ideal))}
+    if noise is not None:
+        made |= {"clean": replace(tr, images=np.stack(clean)), "noisy": replace(tr, sharp=np.stack(noisy))}
+    for kind, train in made.items():
+        if not paths[kind].exists():
+            schema.write(replace(sc, train=train), paths[kind])
+    return paths
+
+
+def blur_model_residual(cell: Path, ideal: Path) -> dict:
+    """Where the scene's blurry frames differ from the trainer's blur model of their sharp sub-frames: the
+    PSNR between the two, and the share of the squared difference at pixels that some sub-frame sees above
+    full scale (linear > 1: highlights the sharp frames clip) and at pixels the blurry frame saturates (255)."""
+    from ev3dgs import schema
+
+    real = np.asarray(schema.read(cell).train.images).astype(np.float64)
+    model = np.asarray(schema.read(ideal).train.images).astype(np.float64)
+    cache = _render_cache(cell)
+    hdr = np.stack([np.load(cache / f"view_{v:04d}.npz")["frames"][:SUBFRAMES].max(axis=(0, 3)) > 1.0
+                    for v in range(len(real))])
+    d2 = ((real - model) ** 2).sum(axis=-1)
+    total = float(d2.sum()) or 1.0
+    return {"psnr_db": float(10 * np.log10(255.0 ** 2 / np.mean((real - model) ** 2))),
+            "pixels_above_full_scale": float(hdr.mean()),
+            "share_above_full_scale": float(d2[hdr].sum() / total),
+            "share_saturated": float(d2[(real >= 255).any(axis=-1)].sum() / total)}
+
+
+def _job(job: dict) -> dict:
+    import torch
+
+    torch.set_num_threads(1)
+    t = time.perf_counter()
+    m = run_on(Path(job["train_scene"]), Path(job["eval_scene"]), job["overrides"], job["seed"],
+               job["iterations"], job["init_points"], Path(job["out"]))
+    return {**{k: job[k] for k in ("variant", "seed")}, "metrics": m, "wall": time.perf_counter() - t}
+
+
+def run_on(train_scene: Path, eval_scene: Path, overrides: dict, seed: int, iterations: int, init_points: int,
+           out: Path) -> dict:
+    """bench_fidelity.run_one (cached by settings and trainer code), scored on ``eval_scene`` when the model was
+    trained on another file."""
+    from bench_fidelity import code_hash, run_one
+
+    from ev3dgs.train.config import TrainConfig
+    from ev3dgs.train.evaluate import evaluate
+    from ev3dgs.train.trainer import Trainer
+
+    if train_scene == eval_scene:
+        return run_one(train_scene, overrides, seed, iterations, init_points, out)
+    cfg = TrainConfig(scene=str(train_scene), iterations=iterations, init_points=init_points, seed=seed,
+                      checkpoint_every=iterations, threads=1, **overrides)
+    done = out / "metrics.json"
+    code = code_hash()
+    if done.exists() and (out / "config.json").exists():
+        cached = json.loads(done.read_text())
+        old = TrainConfig.load(out / "config.json")
+        if (not old.differences(cfg, ignore=("checkpoint_every", "threads")) and cached.get("code") == code
+                and cached.get("scored_on") == str(eval_scene)):
+            return cached
+    t = time.perf_counter()
+    Trainer(cfg, out, quiet=True).fit()
+    seconds = time.perf_counter() - t
+    m = evaluate(out, write_images=False, scene=eval_scene)
+    m |= {"train_seconds": seconds, "code": code, "scored_on": str(eval_scene)}
+    done.write_text(json.dumps(m, indent=2))
+    return m
+
+
+def summarise(runs: list[dict]) -> dict:
+    out: dict = {}
+    for r in runs:
+        d = out.setdefault(r["variant"], {"blur_view": [], "novel_view": [], "train_s": [], "seeds": []})
+        for view in ("blur_view", "novel_view"):
+            d[view].append(r["metrics"][view]["psnr"])
+        d["train_s"].append(r["metrics"].get("train_seconds", float("nan")))
+        d["seeds"].append(r["seed"])
+    return out
+
+
+def attribution(summary: dict) -> list[dict]:
+    """Per step of STEPS: the cost (PSNR of the variant without the cause minus with it) per view kind, as the
+    mean and the range over the seeds both variants ran with (paired by seed)."""
+    rows = []
+    for cause, better, worse in STEPS:
+        if better not in summary or worse not in summary:
+            continue
+        row = {"cause": cause, "without": better, "with": worse}
+        for view in ("blur_view", "novel_view"):
+            a = dict(zip(summary[better]["seeds"], summary[better][view]))
+            b = dict(zip(summary[worse]["seeds"], summary[worse][view]))
+            diffs = [a[s] - b[s] for s in sorted(set(a) & set(b))]
+            row[view] = [float(np.mean(diffs)), float(min(diffs)), float(max(diffs)), len(diffs)]
+        rows.append(row)
+    return rows
+
+
+def plot(summary: dict, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [v for v in VARIANTS if v in summary]
+    fig, ax = plt.subplots(figsize=(10, 3.8))
+    x = np.arange(len(names))
+    for k, (view, col) in enumerate((("blur_view", "C0"), ("novel_view", "C1"))):
+        vals = [summary[n][view] for n in names]
+        ax.bar(x + (k - 0.5) * 0.38, [np.mean(v) for v in vals], 0.38, color=col, label=view.replace("_", " "),
+               yerr=[[np.mean(v) - min(v) for v in vals], [max(v) - np.mean(v) for v in vals]], capsize=2)
+    lo = min(min(summary[n][v]) for n in names for v in ("blur_view", "novel_view"))
+    ax.set_ylim(lo - 1.5, None)
+    ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("PSNR (dB), mean and range over seeds")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png, dpi=120)
+
+
+def main(argv=None) -> int:
+    from study_event_term import cell_name, make_cells
+
+    from ev3dgs.train.jobs import default_jobs, run_parallel
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default=str(ROOT / "tools/scenes/heldout_shake.toml"))
+    ap.add_argument("--theta", type=float, default=0.05, help="the events' cell: threshold (default 0.05)")
+    ap.add_argument("--mismatch", type=float, default=0.1, help="... and relative mismatch (default 0.1)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=tuple(VARIANTS))
+    ap.add_argument("--iterations", type=int, default=1000)
+    ap.add_argument("--init-points", type=int, default=5000)
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--size", default="96x72")
+    ap.add_argument("--samples", type=int, default=8, help="Cycles samples per pixel (default %(default)s)")
+    ap.add_argument("--jobs", type=int, default=default_jobs())
+    ap.add_argument("--cache", default=str(ROOT / "tools/results/event_term_cache"))
+    ap.add_argument("--json", required=True)
+    ap.add_argument("--plot")
+    a = ap.parse_args(argv)
+    w, h = (int(x) for x in a.size.split("x"))
+    render = dict(width=w, height=h, views=a.views, test_views=max(2, a.views // 3), subframes=SUBFRAMES,
+                  samples=a.samples)
+    t0 = time.perf_counter()
+    cache = Path(a.cache)
+    # the first cell of study_event_term's default sweep is the file its sensor-free runs trained on: reused
+    free_name = cell_name(0.05, 0.0)
+    cells = make_cells(a.scene, [0.05, a.theta], [0.0, a.mismatch], render, cache, quiet=True)
+    cell = cells[cell_name(a.theta, a.mismatch)]
+    scenes = {"cell": cell, "free": cells[free_name], **derived_scenes(a.scene, cells[free_name], cache / "derived")}
+    jobs = []
+    for i, seed in enumerate(a.seeds):
+        for v in a.variants:
+            kind, overrides, mult, first_only = VARIANTS[v]
+            if kind not in scenes or (first_only and i > 0):  # clean/noisy: scenes with frame noise only
+                continue
+            # the names study_event_term uses for the same runs, so that they are found in the cache
+            tag = (f"{cell_name(a.theta, a.mismatch)}_" if kind == "cell" else
+                   "sensor_free_" if kind == "free" else f"{kind}_")
+            name = tag + v
+            # scored on the file with the same frames: the cell for event runs, the sensor-free cell for the
+            # rest (the study_event_term runs were scored there; its sharp and test frames are the cell's)
+            jobs.append(dict(variant=v, seed=seed, train_scene=str(scenes[kind]),
+                             eval_scene=str(cell if kind == "cell" else scenes["free"]),
+                             overrides=overrides, iterations=a.iterations * mult, init_points=a.init_points,
+                             out=str(cache / "runs" / f"{name}_s{seed}")))
+    # seed by seed (an interrupted study leaves whole seeds), the slow ones (17 sub-poses, 3x steps) first in
+    # each, so two workers finish together
+    jobs.sort(key=lambda j: (j["seed"], -(j["iterations"] * (3 if "@17" in j["variant"] else 1))))
+
+    def report(r):
+        m = r["metrics"]
+        print(f"  {r['variant']:18s} seed {r['seed']}: blur view {m['blur_view']['psnr']:.2f}, "
+              f"novel {m['novel_view']['psnr']:.2f} dB ({r['wall']:.0f} s)", flush=True)
+
+    runs = run_parallel(_job, jobs, a.jobs, report)
+    summary = summarise(runs)
+    table = attribution(summary)
+    for row in table:
+        b, n = row["blur_view"], row["novel_view"]
+        print(f"{row['cause']:55s} blur {b[0]:+.2f} ({b[1]:+.2f}..{b[2]:+.2f})  novel {n[0]:+.2f} "
+              f"({n[1]:+.2f}..{n[2]:+.2f})  seeds {b[3]}")
+    residual = blur_model_residual(scenes["free"], scenes["ideal"])
+    print(f"blurry frames against the trainer's blur model of the sharp sub-frames: {residual['psnr_db']:.1f} dB; "
+          f"{100 * residual['share_above_full_scale']:.1f} % of the squared difference at the "
+          f"{100 * residual['pixels_above_full_scale']:.0f} % of pixels some sub-frame sees above full scale, "
+          f"{100 * residual['share_saturated']:.0f} % at saturated pixels")
+    save_json(a.json, {"settings": {**vars(a), "render": render}, "cores": default_jobs(), "summary": summary,
+                       "attribution": table, "blur_model_residual": residual, "runs": runs,
+                       "seconds": time.perf_counter() - t0})
+    if a.plot:
+        plot(summary, Path(a.plot))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
