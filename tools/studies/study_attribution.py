@@ -67,7 +67,8 @@ VARIANTS = {
     "blur-only@3000": ("free", dict(event_loss=False), 3, True),
     "blur+event@3000": ("cell", dict(event_norm="noise"), 3, True),
 }
-# the table: (cause, the variant without it, the variant with it); the cost is the PSNR difference
+# the table: (cause, the variant without it, the variant with it); the cost is the PSNR difference (negative:
+# the cause helps)
 STEPS = [
     ("information: one sharp frame per view instead of 17", "info-oracle", "oracle"),
     ("one blurry frame, ideal blur model, 17 sub-poses", "oracle", "blur-ideal@17"),
@@ -76,7 +77,8 @@ STEPS = [
     ("frame noise in the blurry frames (17 sub-poses)", "blur-clean@17", "blur-only@17"),
     ("blur model and frame noise against the ideal one", "blur-ideal@17", "blur-only@17"),
     ("5 sub-poses instead of 17 (blur-only)", "blur-only@17", "blur-only"),
-    ("events added (5 sub-poses)", "blur-only", "blur+event"),
+    ("no events (5 sub-poses)", "blur+event", "blur-only"),
+    ("no events (17 sub-poses)", "blur+event@17", "blur-only@17"),
     ("5 sub-poses instead of 17 (blur+event)", "blur+event@17", "blur+event"),
     ("4 random pairs per step instead of all", "blur+event", "blur+event@4pairs"),
     ("1000 steps instead of 3000 (blur+event)", "blur+event@3000", "blur+event"),
