@@ -60,10 +60,11 @@ study-event-term: setup
 		--merge tools/results/study_event_term_count.json \
 		--json tools/results/study_event_term.json --plot tools/results/study_event_term.png
 
-# where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs) and
-# lowlight (frame noise), two seeds (~1.5 h on 2 cores after study-event-term)
+# where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
+# on 2 cores after study-event-term) and lowlight (frame noise), two seeds
 study-attribution: setup
-	$(BIN)/python tools/studies/study_attribution.py \
+	$(BIN)/python tools/studies/study_attribution.py --variants info-oracle oracle blur-ideal@17 blur-only@17 \
+		blur-only blur+event blur+event@17 blur+event@4pairs oracle@3000 blur-only@3000 blur+event@3000 \
 		--json tools/results/study_attribution.json --plot tools/results/study_attribution.png
 	$(BIN)/python tools/studies/study_attribution.py --scene lowlight --theta 0.2 --mismatch 0.15 --samples 16 \
 		--variants naive blur-only blur+event oracle oracle-noisy info-oracle blur-ideal@17 blur-clean@17 \
