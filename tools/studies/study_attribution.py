@@ -22,8 +22,9 @@ trained under variants that each remove one cause of error, on the same frames, 
 * ``*@3000``: blur-only, blur+event and the oracle at 3x the steps (first seed only): the optimisation length.
 
 The threshold and mismatch (quantisation) costs come from ``study_event_term.py`` on the same frames. Scenes are
-shared with that study's cache (tools/results/event_term_cache), so its runs are reused; the two derived scene
-files (info-oracle, blur-ideal) are written there from the render cache. Every model is scored on the cell's
+shared with that study's cache (tools/results/event_term_cache), so its runs are reused; the derived scene
+files (info-oracle, blur-ideal, and for noisy scenes blur-clean and sharp-noisy) are written there from the
+render cache. Every model is scored on the cell's
 scene file (blur views: the 12 sharp mid-exposure frames; novel views: /test).
 
     python tools/studies/study_attribution.py --json tools/results/study_attribution.json \\
@@ -110,7 +111,8 @@ def derived_scenes(spec_path: str, cell: Path, out_dir: Path) -> dict[str, Path]
     spec = load_scene(spec_path)
     isp, noise = spec.sensor.isp, spec.sensor.sensor_noise
     kinds = ("info", "ideal") + (("clean", "noisy") if noise is not None else ())
-    names = {"info": "info_oracle.h5", "ideal": "blur_ideal.h5", "clean": "blur_clean.h5", "noisy": "sharp_noisy.h5"}
+    names = {"info": "info_oracle.h5", "ideal": "blur_ideal.h5", "clean": "blur_clean.h5",
+             "noisy": "sharp_noisy.h5"}
     paths = {k: out_dir / names[k] for k in kinds}
     if all(p.exists() for p in paths.values()):
         return paths
