@@ -141,3 +141,28 @@ def test_attribution_pairs_seeds():
     assert len(rows) == 1 and rows[0]["without"] == "info-oracle" and rows[0]["with"] == "oracle"
     assert rows[0]["blur_view"] == [1.75, 1.5, 2.0, 2]      # seed 2 has no oracle run: not paired
     assert rows[0]["novel_view"] == [0.75, 0.5, 1.0, 2]
+
+
+def test_run_one_keys_its_cache_on_the_file_scored_on(tmp_path):
+    """A model trained on one file and scored on another (the study's derived scenes) is cached with that file:
+    the same call returns the cached scores, another scoring file scores again without retraining."""
+    import shutil
+
+    from bench_fidelity import run_one
+
+    from ev3dgs.blob_scene import blob_scene
+
+    train = blob_scene(tmp_path / "train.h5", 24, 18, views=3, subframes=3, n=60, backend="reference")
+    other = tmp_path / "other.h5"
+    shutil.copy(train, other)
+    out = tmp_path / "run"
+    kw = dict(overrides=dict(oracle=True, sh_degree=0, backend="reference"), seed=0, iterations=3, init_points=50,
+              out=out)
+    first = run_one(train, eval_scene=other, **kw)
+    assert first["scored_on"] == str(other) and first["scene"] == str(other.resolve())
+    model = (out / "model.pt").stat().st_mtime_ns
+    assert run_one(train, eval_scene=other, **kw) == first                 # cached
+    again = run_one(train, **kw)                                           # scored on the training file
+    assert "scored_on" not in again and again["scene"] == str(train.resolve())
+    assert (out / "model.pt").stat().st_mtime_ns == model                  # scored again, not trained again
+    assert again["blur_view"]["psnr"] == first["blur_view"]["psnr"]        # the same frames in both files

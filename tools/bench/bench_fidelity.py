@@ -102,31 +102,36 @@ def build_scene(name: str, render: dict, cache: Path, quiet: bool) -> Path:
 
 
 def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_points: int, out: Path,
-            lpips_weights=None) -> dict:
+            lpips_weights=None, eval_scene: Path | None = None) -> dict:
+    """Train ``scene`` into ``out`` and score it (cached: see the module doc). ``eval_scene``: score on that
+    file instead of the training one (a study that trains on a derived file with the same views); a cached
+    run scored on another file is scored again, not trained again."""
     cfg = TrainConfig(scene=str(scene), iterations=iterations, init_points=init_points, seed=seed,
                       checkpoint_every=max(iterations, 1), threads=1, **overrides)
     done = out / "metrics.json"
     code, scoring = code_hash(), code_hash(scoring=True)
+    scored_on = None if eval_scene is None else str(eval_scene)
+
+    def score(run: dict) -> dict:   # evaluate, record with the run's training facts, write metrics.json
+        m = evaluate(out, lpips_weights=lpips_weights, write_images=False,
+                     **({} if eval_scene is None else {"scene": eval_scene}))
+        m |= run | {"scoring_code": scoring} | ({"scored_on": scored_on} if scored_on else {})
+        done.write_text(json.dumps(m, indent=2))
+        return m
+
     if done.exists() and (out / "config.json").exists():
         old = TrainConfig.load(out / "config.json")
         cached = json.loads(done.read_text())
         if not old.differences(cfg, ignore=("checkpoint_every", "threads")) and cached.get("code") == code:
-            if cached.get("scoring_code") == scoring and (lpips_weights is None or cached.get("lpips")):
+            if (cached.get("scoring_code") == scoring and (lpips_weights is None or cached.get("lpips"))
+                    and cached.get("scored_on") == scored_on):
                 return cached
-            # trained by this code, scored by other code or without LPIPS: score again, do not retrain
-            m = evaluate(out, lpips_weights=lpips_weights, write_images=False)
-            m |= {k: cached.get(k) for k in ("train_seconds", "code")} | {"scoring_code": scoring}
-            done.write_text(json.dumps(m, indent=2))
-            return m
+            # trained by this code, scored by other code, without LPIPS or on another file: score again, do not
+            # retrain
+            return score({k: cached.get(k) for k in ("train_seconds", "code")})
     t = time.perf_counter()
     Trainer(cfg, out, quiet=True).fit()
-    seconds = time.perf_counter() - t
-    m = evaluate(out, lpips_weights=lpips_weights, write_images=False)
-    m["train_seconds"] = seconds
-    m["code"] = code
-    m["scoring_code"] = scoring
-    done.write_text(json.dumps(m, indent=2))
-    return m
+    return score({"train_seconds": time.perf_counter() - t, "code": code})
 
 
 def _run_job(job: dict) -> dict:

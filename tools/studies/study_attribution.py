@@ -33,7 +33,6 @@ scene file (blur views: the 12 sharp mid-exposure frames; novel views: /test).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import replace
@@ -176,42 +175,14 @@ def blur_model_residual(cell: Path, ideal: Path) -> dict:
 def _job(job: dict) -> dict:
     import torch
 
+    from bench_fidelity import run_one
+
     torch.set_num_threads(1)
     t = time.perf_counter()
-    m = run_on(Path(job["train_scene"]), Path(job["eval_scene"]), job["overrides"], job["seed"],
-               job["iterations"], job["init_points"], Path(job["out"]))
+    train, score = Path(job["train_scene"]), Path(job["eval_scene"])
+    m = run_one(train, job["overrides"], job["seed"], job["iterations"], job["init_points"], Path(job["out"]),
+                eval_scene=None if score == train else score)
     return {**{k: job[k] for k in ("variant", "seed")}, "metrics": m, "wall": time.perf_counter() - t}
-
-
-def run_on(train_scene: Path, eval_scene: Path, overrides: dict, seed: int, iterations: int, init_points: int,
-           out: Path) -> dict:
-    """bench_fidelity.run_one (cached by settings and trainer code), scored on ``eval_scene`` when the model was
-    trained on another file."""
-    from bench_fidelity import code_hash, run_one
-
-    from ev3dgs.train.config import TrainConfig
-    from ev3dgs.train.evaluate import evaluate
-    from ev3dgs.train.trainer import Trainer
-
-    if train_scene == eval_scene:
-        return run_one(train_scene, overrides, seed, iterations, init_points, out)
-    cfg = TrainConfig(scene=str(train_scene), iterations=iterations, init_points=init_points, seed=seed,
-                      checkpoint_every=iterations, threads=1, **overrides)
-    done = out / "metrics.json"
-    code = code_hash()
-    if done.exists() and (out / "config.json").exists():
-        cached = json.loads(done.read_text())
-        old = TrainConfig.load(out / "config.json")
-        if (not old.differences(cfg, ignore=("checkpoint_every", "threads")) and cached.get("code") == code
-                and cached.get("scored_on") == str(eval_scene)):
-            return cached
-    t = time.perf_counter()
-    Trainer(cfg, out, quiet=True).fit()
-    seconds = time.perf_counter() - t
-    m = evaluate(out, write_images=False, scene=eval_scene)
-    m |= {"train_seconds": seconds, "code": code, "scored_on": str(eval_scene)}
-    done.write_text(json.dumps(m, indent=2))
-    return m
 
 
 def summarise(runs: list[dict]) -> dict:
