@@ -108,7 +108,8 @@ def test_training_improves_the_sharp_views(scene_path, tmp_path):
     assert len(log) == 150 and all(np.isfinite(r["loss"]) for r in log) and log[-1]["event"] > 0
 
 
-def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path):
+@pytest.mark.parametrize("extra", [{}, {"threshold_map": True}])
+def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
     class Stop(Exception):
         pass
 
@@ -116,16 +117,38 @@ def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path):
         if trainer.step == 40:
             raise Stop
 
-    full = Trainer(cfg(scene_path), tmp_path / "a", quiet=True)
+    full = Trainer(cfg(scene_path, **extra), tmp_path / "a", quiet=True)
     full.fit()
-    part = Trainer(cfg(scene_path), tmp_path / "b", quiet=True)
+    part = Trainer(cfg(scene_path, **extra), tmp_path / "b", quiet=True)
     with pytest.raises(Stop):
         part.fit(on_step=stop_at_40)
-    resumed = Trainer(cfg(scene_path), tmp_path / "b", quiet=True)
+    resumed = Trainer(cfg(scene_path, **extra), tmp_path / "b", quiet=True)
     resumed.fit(resume=True)
     for name, p in full.model.params.items():
         assert torch.equal(p, resumed.model.params[name]), name
     assert resumed.step == full.step == 60
+    if extra:
+        assert torch.equal(full.threshold_map.multiplier, resumed.threshold_map.multiplier)
+        saved = torch.load(tmp_path / "a" / "model.pt", weights_only=False)["threshold_map"]
+        assert saved.shape == (2, H, W) and torch.equal(saved, full.threshold_map.multiplier)
+        assert not torch.equal(saved, torch.ones_like(saved))    # the events moved it
+
+
+def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_path, tmp_path):
+    """With --event-mismatch 0 there is no pattern to fit: the run is bitwise the one without the map; the
+    count norm has no noise model to weigh the map with and is refused."""
+    plain = Trainer(cfg(scene_path, iterations=15, event_mismatch=0.0), tmp_path / "a", quiet=True)
+    plain.fit()
+    mapped = Trainer(cfg(scene_path, iterations=15, event_mismatch=0.0, threshold_map=True), tmp_path / "b",
+                     quiet=True)
+    mapped.fit()
+    assert mapped.threshold_map is None
+    for name, p in plain.model.params.items():
+        assert torch.equal(p, mapped.model.params[name]), name
+    from ev3dgs.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="threshold-map needs --event-norm noise"):
+        cfg(scene_path, threshold_map=True, event_norm="count")
 
 
 def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypatch):
@@ -153,7 +176,7 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
 
 
 @pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"], ["--blur-space", "linear", "--learn-thresholds",
-                                                                      "--event-pairs", "3"]])
+                                                                      "--event-pairs", "3", "--threshold-map"]])
 def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
     run = tmp_path / "run"
     assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--init-points", "300",

@@ -89,7 +89,7 @@ def _train(args) -> int:
         event_norm=args.event_norm, event_mismatch=args.event_mismatch,
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
-        learn_thresholds=args.learn_thresholds, sh_degree=args.sh_degree,
+        learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, sh_degree=args.sh_degree,
         init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
         device=args.device, threads=args.threads, backend=args.backend,
         refine_poses=args.refine_poses, pose_lr=args.pose_lr, pose_lr_final=args.pose_lr_final,
@@ -275,6 +275,10 @@ def build_parser():
     t.add_argument("--learn-thresholds", action="store_true",
                    help="optimise the ON/OFF contrast thresholds (log intensity) with the model "
                         "(default: off, the scene file's thresholds are kept fixed)")
+    t.add_argument("--threshold-map", action="store_true",
+                   help="learn each pixel's ON and OFF thresholds (the sensor's fixed-pattern mismatch) with "
+                        "the model, under a prior of the scene's mismatch or --event-mismatch; the noise norm "
+                        "only; no effect where the mismatch is 0 (default: off)")
     t.add_argument("--refine-poses", action="store_true",
                    help="learn per-view SE(3) corrections of each exposure's trajectory (start and end, "
                         "interpolated over the sub-poses) with the model; saves RUN/trajectory.npz, which eval "

@@ -39,6 +39,8 @@ def save_checkpoint(path: Path, trainer) -> None:
         "scene": scene_fingerprint(trainer.data),
         "pose_refiner": None if getattr(trainer, "pose_refiner", None) is None else trainer.pose_refiner.state_dict(),
         "event_floor": getattr(trainer, "event_floor", None),
+        "threshold_map": (None if getattr(trainer, "threshold_map", None) is None
+                          else trainer.threshold_map.state_dict()),
     }
     from ..outputs import atomic_path
 
@@ -115,6 +117,10 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
         trainer.threshold_opt.load_state_dict(payload["threshold_opt"])
     if getattr(trainer, "pose_refiner", None) is not None and payload.get("pose_refiner") is not None:
         trainer.pose_refiner.load_state_dict(payload["pose_refiner"])
+    if getattr(trainer, "threshold_map", None) is not None:
+        if payload.get("threshold_map") is None:
+            raise InputError(f"{path}: the checkpoint has no threshold map to continue --threshold-map from")
+        trainer.threshold_map.load_state_dict(payload["threshold_map"])
     floor = payload.get("event_floor")   # absent in checkpoints of the count norm, which has none
     trainer.event_floor = None if floor is None else float(floor)
     trainer.step = int(payload["step"])

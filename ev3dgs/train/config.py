@@ -48,6 +48,7 @@ class TrainConfig:
                                       # display values (v2e); "auto": from the scene's transfer
     oracle: bool = False              # the upper bound: plain 3DGS on the sharp frames at their sharp poses
     learn_thresholds: bool = False
+    threshold_map: bool = False       # learn per-pixel ON/OFF thresholds (fixed-pattern mismatch), noise norm
     ssim_lambda: float = 0.2
     sh_degree: int = 3
     sh_interval: int = 1000           # raise the active SH degree every this many steps
@@ -76,6 +77,8 @@ class TrainConfig:
         check(self.event_weight is None or self.event_weight >= 0, "--event-weight must be >= 0")
         check(self.event_norm in EVENT_WEIGHTS, f"--event-norm must be one of {', '.join(EVENT_WEIGHTS)}")
         check(self.event_mismatch is None or 0 <= self.event_mismatch <= 1, "--event-mismatch must be in [0, 1]")
+        check(not self.threshold_map or self.event_norm == "noise",
+              "--threshold-map needs --event-norm noise (its prior and weights come from the noise model)")
         n_pairs = self.subposes * (self.subposes - 1) // 2
         check(0 <= self.event_pairs <= n_pairs,
               f"--event-pairs must be in [0, {n_pairs}] ({self.subposes} sub-poses have {n_pairs} pairs)")

@@ -267,7 +267,8 @@ FLOOR_MOMENTUM = 0.9  # exponential average of the model's excess squared residu
 
 
 def count_variance(counts: torch.Tensor, idx: torch.Tensor, tp: torch.Tensor, tn: torch.Tensor,
-                   rel_mismatch: float, noise_events: torch.Tensor | None = None) -> torch.Tensor:
+                   rel_mismatch: float, noise_events: torch.Tensor | None = None,
+                   spread: torch.Tensor | None = None) -> torch.Tensor:
     """Expected squared error (log units) of the count-based change estimate for each pair and pixel:
 
     * quantisation: the signal sits somewhere inside the threshold band at each pose (uniform over one
@@ -279,12 +280,19 @@ def count_variance(counts: torch.Tensor, idx: torch.Tensor, tp: torch.Tensor, tn
     * noise events: each moves the estimate by a threshold; ``noise_events`` (pairs,) = expected noise events
       per pixel in each pair's window (Poisson): variance theta^2 times that.
 
+    ``spread`` (2, H, W), with a learned threshold map (train/threshold_map.py): each pixel's remaining
+    relative error of its ON and OFF thresholds, which are independent: the mismatch variance is then
+    (s_on theta_on n_on)^2 + (s_off theta_off n_off)^2 and ``rel_mismatch`` is not used. tp, tn may be
+    (H, W) maps.
+
     counts: (K, 2, H, W) cumulative; idx: (P, 2) pose indices -> (P, H, W)."""
     c = counts.to(tp.dtype)
     n = (c.index_select(0, idx[:, 1]) - c.index_select(0, idx[:, 0])).abs()
-    a = tp * n[:, 0] + tn * n[:, 1]
     theta2 = 0.5 * (tp * tp + tn * tn)
-    v = theta2 / 6.0 + (rel_mismatch * a) ** 2
+    if spread is None:
+        v = theta2 / 6.0 + (rel_mismatch * (tp * n[:, 0] + tn * n[:, 1])) ** 2
+    else:
+        v = theta2 / 6.0 + (spread[0] * tp * n[:, 0]) ** 2 + (spread[1] * tn * n[:, 1]) ** 2
     if noise_events is not None:
         v = v + theta2 * noise_events.to(v.dtype)[:, None, None]
     return v
@@ -293,7 +301,8 @@ def count_variance(counts: torch.Tensor, idx: torch.Tensor, tp: torch.Tensor, tn
 def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple[int, int]], theta_pos,
                      theta_neg, convention: str = "random_phase", rel_mismatch: float = 0.1,
                      noise_events: torch.Tensor | None = None, floor: float | None = None,
-                     knee: float | None = DEFAULT_LOG_KNEE) -> tuple[torch.Tensor, float]:
+                     knee: float | None = DEFAULT_LOG_KNEE,
+                     spread: torch.Tensor | None = None) -> tuple[torch.Tensor, float]:
     """The event loss weighted by a noise model of the counts: mean over pairs and pixels of
 
         r^2 / (v + floor * g),   r = (log_l[k2] - log_l[k1]) - (E_k2 - E_k1)   (log units, as pose_event_loss)
@@ -308,7 +317,8 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     change, and never above 1 / (floor g), so finer thresholds sharpen the target without letting the term
     outgrow the blur loss (the count norm, residual / theta, grows as 1 / theta^2).
     Returns (loss, this step's floor estimate: the mean of (r^2 - v) / g, a detached float; update_floor
-    bounds it)."""
+    bounds it). ``theta_pos``/``theta_neg`` may be (H, W) per-pixel maps and ``spread`` their remaining
+    relative error (count_variance)."""
     _check_event_shapes(log_l, counts)
     if not (rel_mismatch >= 0 and math.isfinite(rel_mismatch)):
         raise ValueError(f"rel_mismatch must be finite and >= 0, got {rel_mismatch!r}")
@@ -318,7 +328,7 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     if len(pairs) == 0:
         return log_l.sum() * 0.0, FLOOR_MIN
     residual, idx = _pair_residuals(log_l, counts, pairs, tp, tn, convention)
-    v = count_variance(counts, idx, tp.detach(), tn.detach(), rel_mismatch, noise_events)
+    v = count_variance(counts, idx, tp.detach(), tn.detach(), rel_mismatch, noise_events, spread)
     with torch.no_grad():
         if knee is None:
             g = torch.ones_like(v)

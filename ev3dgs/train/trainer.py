@@ -124,6 +124,12 @@ class Trainer:
         self.use_events = cfg.uses_events and self.data.bins is not None
         self.event_floor: float | None = None   # the noise norm's model floor (losses.update_floor)
         self.rel_mismatch, self.noise_rate_hz = self._event_noise()
+        self.threshold_map = None   # --threshold-map: per-pixel thresholds (threshold_map.py)
+        if cfg.threshold_map and self.use_events and self.rel_mismatch > 0:
+            from .threshold_map import ThresholdMap
+
+            self.threshold_map = ThresholdMap(self.rel_mismatch, self.data.n_views, self.data.height,
+                                              self.data.width, self.device)
         self.pose_refiner = None  # --refine-poses (issue 16): learnable exposure-trajectory corrections
         if cfg.refine_poses:
             from .pose_refine import PoseRefiner
@@ -209,9 +215,14 @@ class Trainer:
                 t = data.sub_times[v].astype(np.float64) * 1e-6
                 noise = (torch.tensor([self.noise_rate_hz * abs(t[b] - t[a]) for a, b in pairs],
                                       dtype=log_l.dtype, device=log_l.device) if self.noise_rate_hz > 0 else None)
-                l_event, estimate = noise_event_loss(log_l, counts, pairs, tp, tn, data.count_convention,
-                                                     self.rel_mismatch, noise, self.event_floor, data.log_knee)
+                tmap = self.threshold_map
+                tpm, tnm = (tp, tn) if tmap is None else tmap.thresholds(tp, tn)
+                l_event, estimate = noise_event_loss(log_l, counts, pairs, tpm, tnm, data.count_convention,
+                                                     self.rel_mismatch, noise, self.event_floor, data.log_knee,
+                                                     None if tmap is None else tmap.spread)
                 self.event_floor = update_floor(self.event_floor, estimate)
+                if tmap is not None:  # this view's equations at the current render; the map solved again
+                    tmap.update(v, data.bins[v], tp, tn, self.event_floor, log_l, data.log_knee)
             loss = loss + cfg.omega * l_event
         loss.backward()
         self._guard(loss, l_blur, l_event)
@@ -316,7 +327,10 @@ class Trainer:
 
         with atomic_path(self.run_dir / "model.pt") as tmp:  # on failure: temporary removed, OutputError
             torch.save({"model": self.model.state_dict(),
-                        "thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()}}, tmp)
+                        "thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()},
+                        # --threshold-map: (2, H, W) ON/OFF multipliers of the thresholds above
+                        "threshold_map": (None if self.threshold_map is None
+                                          else self.threshold_map.multiplier.clone())}, tmp)
         if self.pose_refiner is not None:  # the refined trajectory, read by eval
             self.pose_refiner.save(self.run_dir / "trajectory.npz")
         else:  # never leave an older run's trajectory beside this model

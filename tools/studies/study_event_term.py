@@ -36,7 +36,8 @@ sys.path.insert(0, str(ROOT / "tools" / "bench"))
 from pareto import save_json  # noqa: E402
 
 VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="noise"),
-            "blur+event-count": dict(event_norm="count"), "oracle": dict(oracle=True)}
+            "blur+event-count": dict(event_norm="count"), "oracle": dict(oracle=True),
+            "blur+event-map": dict(event_norm="noise", threshold_map=True)}
 SENSOR_FREE = ("blur-only", "oracle")   # variants that never read the events: one run per seed
 
 
