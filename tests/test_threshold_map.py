@@ -89,6 +89,31 @@ def test_the_fixed_pattern_is_recovered_to_its_posterior_spread():
     assert rms_err < 0.5 * float(np.sqrt(np.mean(e ** 2)))
 
 
+def test_a_rendering_worse_than_the_floor_says_is_shrunk_and_reported_honestly():
+    """The rendering's bin changes are off by N(0, 0.15^2) but the map is told a floor 100 times smaller, with
+    a 10 % pattern the model's error swamps: the calibration finds the noise (c near 100, against 2-3 at the
+    true floor, where the quantisation and the local mean add their share) and shrinks the map towards 1, so
+    it is still no worse than the nominal thresholds and its reported spread is as honest as the analysis of
+    the first test says (same tolerance)."""
+    from ev3dgs.train.threshold_map import SMOOTH_PX
+
+    rng = np.random.default_rng(0)
+    theta, s, sigma = 0.05, 0.1, 0.15
+    e = np.clip(s * rng.standard_normal((2, H, W)), -0.6, None)
+    views = _views(rng, 12, 5, theta, e[0], e[1], model_error=sigma)
+    told = _fit(views, theta, s, floor=sigma ** 2)
+    fooled = _fit(views, theta, s, floor=sigma ** 2 / 100)
+    assert (fooled.calibration > 10 * told.calibration).all()
+    err = fooled.multiplier.numpy() - (1 + e)
+    rms_err = float(np.sqrt(np.mean(err ** 2)))
+    spread2 = fooled.spread.numpy() ** 2
+    bias2 = ((theta ** 2 / 6) / (1.5 ** 2 / 3 / 16)) ** 2 * (1 + e) ** 2
+    local2 = _lowpass_gain(SMOOTH_PX)[None] * (s ** 2 + spread2)
+    predicted = float(np.sqrt(np.mean(spread2 + bias2 + local2)))
+    assert rms_err <= predicted * (1 + 4 / math.sqrt(2 * e.size))
+    assert rms_err < float(np.sqrt(np.mean(e ** 2)))
+
+
 def test_one_pixel_is_the_weighted_least_squares_solution():
     """One pixel, two views, bins with ON and OFF events: its fit is the MAP of the linear model, computed
     here as an augmented least-squares problem (numpy lstsq on rows sqrt(w) [A_on, -A_off] -> sqrt(w) d and

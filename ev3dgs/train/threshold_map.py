@@ -51,6 +51,7 @@ class ThresholdMap:
         self.stats = torch.zeros(int(n_views), 5, height, width, device=device, dtype=dtype)
         self.multiplier = torch.ones(2, height, width, device=device, dtype=dtype)   # what the event term uses
         self.fitted = self.multiplier.clone()    # each pixel's MAP before the local mean is divided out
+        self.calibration = torch.ones(2, device=device, dtype=dtype)   # c of _calibrate, ON and OFF
         self.spread = torch.full((2, height, width), self.s, device=device, dtype=dtype)
 
     def thresholds(self, tp: torch.Tensor, tn: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,9 +91,34 @@ class ThresholdMap:
         # the scene's texture is. Divide the map by its local mean over the pixels the counts say more about
         # than the prior (unweighted: a pixel's information grows as its threshold falls, so weighting by it
         # would favour low thresholds); the mismatch has mean 1
-        w = (self.spread ** -2 > 2 * p).to(m.dtype)
+        informed = self.spread ** -2 > 2 * p
+        w = informed.to(m.dtype)
         low = (_blur(w * m) + (1 - _blur(w)).clamp(min=0)).clamp(min=MIN_MULTIPLIER)  # no information: 1
-        self.multiplier = (m / low).clamp(MIN_MULTIPLIER, MAX_MULTIPLIER)
+        self._calibrate(m / low, informed)
+
+    def _calibrate(self, m: torch.Tensor, informed: torch.Tensor) -> None:
+        """Empirical Bayes on the model's error. Per pixel the MAP is m - 1 = k (ML - 1), k = 1 - spread^2 /
+        s^2, the ML estimate's noise variance sig^2 = spread^2 / k. If the noise model holds, the informed
+        pixels' mean (m - 1)^2 is the mean of k^2 (s^2 + sig^2) = s^2 - spread^2. Where it is larger, the
+        rendering errs more than the floor says (its error is not independent between bins and views); the
+        noise variances are scaled by the c >= 1 (one per polarity) that makes the two agree, and each pixel
+        shrunk again with it: k' = s^2 / (s^2 + c sig^2), m' - 1 = (k' / k)(m - 1), spread'^2 = k' c sig^2.
+        A map the model's error dominates stays near 1 (and its events weigh as without it)."""
+        s2 = self.s * self.s
+        spread2 = self.spread ** 2
+        k = (1 - spread2 / s2).clamp(min=1e-6)
+        sig2 = spread2 / k
+        c = torch.ones(2, 1, 1, dtype=m.dtype, device=m.device)
+        for j in range(2):
+            sel = informed[j]
+            if bool(sel.any()):
+                kk = k[j][sel] ** 2
+                excess = ((m[j][sel] - 1) ** 2).mean() - (kk * s2).mean()
+                c[j] = (excess / (kk * sig2[j][sel]).mean()).clamp(min=1.0)
+        k2 = s2 / (s2 + c * sig2)
+        self.calibration = c.flatten()
+        self.multiplier = (1 + (k2 / k) * (m - 1)).clamp(MIN_MULTIPLIER, MAX_MULTIPLIER)
+        self.spread = (k2 * c * sig2).sqrt()
 
     def state_dict(self) -> dict:
         return {"stats": self.stats.clone()}

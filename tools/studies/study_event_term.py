@@ -82,6 +82,40 @@ def make_cells(scene: str, thetas, rels, render: dict, cache: Path, quiet: bool)
     return out
 
 
+def map_accuracy(scene: str, theta: float, rel: float, run: Path) -> dict:
+    """How well a --threshold-map run recovered the simulator's per-pixel thresholds: the run's fitted
+    multipliers (its checkpoint) against the thresholds the simulator drew for the cell (the same scene,
+    settings and dataset seed 0, drawn again), over all pixels and over those the counts said more about
+    than the prior (posterior spread under half the prior's). RMS of (fitted - true) / nominal, against the
+    nominal thresholds' own error (the true pattern's RMS)."""
+    import torch
+
+    from ev3dgs.sim.config import ThresholdMismatch
+    from ev3dgs.sim.dvs import DVSSimulator
+    from ev3dgs.sim.scenes import load_scene
+    from ev3dgs.train.threshold_map import ThresholdMap
+
+    spec = load_scene(scene)
+    dvs = replace(spec.sensor.dvs, pos_threshold=theta, neg_threshold=theta,
+                  threshold_mismatch=ThresholdMismatch(sigma=rel * theta))
+    state = torch.load(run / "ckpt.pt", map_location="cpu", weights_only=True)["threshold_map"]
+    n_views, _, h, w = state["stats"].shape
+    tmap = ThresholdMap(rel, n_views, h, w, "cpu")
+    tmap.load_state_dict(state)
+    sim = DVSSimulator(h, w, dvs, seed=0, isp=spec.sensor.isp)
+    truth = np.stack([sim.c_on, sim.c_off]).reshape(2, h, w) / theta
+    fitted = tmap.multiplier.numpy()
+    informed = tmap.spread.numpy() < 0.5 * rel
+
+    def rms(x):
+        return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+
+    return {"rms_error": rms(fitted - truth), "rms_nominal": rms(1 - truth),
+            "informed_fraction": float(informed.mean()), "rms_error_informed": rms((fitted - truth)[informed]),
+            "rms_nominal_informed": rms((1 - truth)[informed]),
+            "correlation_informed": float(np.corrcoef(fitted[informed], truth[informed])[0, 1])}
+
+
 def _job(job: dict) -> dict:
     import torch
 
@@ -91,7 +125,10 @@ def _job(job: dict) -> dict:
     t = time.perf_counter()
     m = run_one(Path(job["scene_path"]), job["overrides"], job["seed"], job["iterations"], job["init_points"],
                 Path(job["out"]))
-    return {**{k: job[k] for k in ("cell", "variant", "seed")}, "metrics": m, "wall": time.perf_counter() - t}
+    out = {**{k: job[k] for k in ("cell", "variant", "seed")}, "metrics": m, "wall": time.perf_counter() - t}
+    if job["overrides"].get("threshold_map") and job["rel"] > 0:
+        out["map"] = map_accuracy(job["scene"], job["theta"], job["rel"], Path(job["out"]))
+    return out
 
 
 def summarise(runs: list[dict]) -> dict:
@@ -122,7 +159,7 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
             if v in summary.get("sensor_free", {}):
                 ax.axhline(summary["sensor_free"][v][view][0], color="k", ls=style[1:], lw=1, label=v)
         for rel, col in zip(rels, ("C0", "C1", "C2", "C3", "C4")):
-            for var, ls in (("blur+event", "-"), ("blur+event-count", ":")):
+            for var, ls in (("blur+event", "-"), ("blur+event-count", ":"), ("blur+event-map", "-.")):
                 ys = [summary.get(cell_name(t, rel), {}).get(var, {}).get(view, [np.nan])[0] for t in thetas]
                 if np.isfinite(ys).any():
                     ax.plot(thetas, ys, ls, color=col, marker="o", ms=3,
@@ -167,6 +204,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     cells = make_cells(a.scene, a.thresholds, a.mismatch, render, Path(a.cache), quiet=True)
     first = next(iter(cells.values()))
+    params = {cell_name(t, r): (t, r) for t in a.thresholds for r in a.mismatch}
     variants = dict(VARIANTS)
     names = list(a.variants)
     if a.event_weights and "blur+event" in names:
@@ -179,9 +217,11 @@ def main(argv=None) -> int:
         for v in names:
             targets = [("sensor_free", first)] if v in SENSOR_FREE else list(cells.items())
             for cname, path in targets:
+                theta, rel = params.get(cname, (None, 0.0))
                 jobs.append(dict(cell=cname, variant=v, seed=seed, scene_path=str(path), overrides=variants[v],
                                  iterations=a.iterations, init_points=a.init_points,
-                                 out=str(Path(a.cache) / "runs" / f"{cname}_{v}_s{seed}")))
+                                 out=str(Path(a.cache) / "runs" / f"{cname}_{v}_s{seed}"), scene=a.scene,
+                                 theta=theta, rel=rel))
 
     def report(r):
         m = r["metrics"]
