@@ -59,6 +59,9 @@ study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur-only blur+event oracle \
 		--merge tools/results/study_event_term_count.json \
 		--json tools/results/study_event_term.json --plot tools/results/study_event_term.png
+	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-map --mismatch 0.1 0.4 \
+		--merge tools/results/study_event_term.json \
+		--json tools/results/study_event_term_map.json --plot tools/results/study_event_term_map.png
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
 # on 2 cores after study-event-term) and lowlight (frame noise), two seeds

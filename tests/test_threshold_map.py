@@ -61,6 +61,17 @@ def _lowpass_gain(sigma_px: float) -> np.ndarray:
     return along(H)[:, None] * along(W)[None, :]
 
 
+def _error_and_prediction(tmap, e, theta, s) -> tuple[float, float]:
+    """The map's RMS error against 1 + e, and the RMS the analysis predicts (see the next test)."""
+    from ev3dgs.train.threshold_map import SMOOTH_PX
+
+    rms_err = float(np.sqrt(np.mean((tmap.multiplier.numpy() - (1 + e)) ** 2)))
+    spread2 = tmap.spread.numpy() ** 2
+    bias2 = ((theta ** 2 / 6) / (1.5 ** 2 / 3 / 16)) ** 2 * (1 + e) ** 2
+    local2 = _lowpass_gain(SMOOTH_PX)[None] * (s ** 2 + spread2)
+    return rms_err, float(np.sqrt(np.mean(spread2 + bias2 + local2)))
+
+
 def test_the_fixed_pattern_is_recovered_to_its_posterior_spread():
     """Per-pixel thresholds theta (1 + e), e ~ N(0, 0.3^2) fixed across 12 views, a rendering whose bin changes
     are off by N(0, 0.05^2) (the model's error, which dominates the quantisation at theta = 0.05 as in
@@ -71,20 +82,13 @@ def test_the_fixed_pattern_is_recovered_to_its_posterior_spread():
     and the local mean the map divides by, which sees the white pattern and its estimation noise through the
     squared weights of its kernel (_lowpass_gain). Tolerance: 4 standard errors of an RMS from 2048 samples
     (1 / sqrt(2 * 2048)) on top."""
-    from ev3dgs.train.threshold_map import SMOOTH_PX
-
     rng = np.random.default_rng(0)
     theta, s, sigma = 0.05, 0.3, 0.05
     e = np.clip(s * rng.standard_normal((2, H, W)), -0.6, None)
     views = _views(rng, 12, 5, theta, e[0], e[1], model_error=sigma)
     tmap = _fit(views, theta, s, floor=sigma ** 2)
-    err = tmap.multiplier.numpy() - (1 + e)
-    rms_err = float(np.sqrt(np.mean(err ** 2)))
-    spread2 = tmap.spread.numpy() ** 2
-    bias2 = ((theta ** 2 / 6) / (1.5 ** 2 / 3 / 16)) ** 2 * (1 + e) ** 2
-    local2 = _lowpass_gain(SMOOTH_PX)[None] * (s ** 2 + spread2)
-    predicted = float(np.sqrt(np.mean(spread2 + bias2 + local2)))
-    assert float(np.sqrt(spread2.mean())) < 0.5 * s                  # the counts pin the pattern
+    rms_err, predicted = _error_and_prediction(tmap, e, theta, s)
+    assert float(np.sqrt(np.mean(tmap.spread.numpy() ** 2))) < 0.5 * s     # the counts pin the pattern
     assert rms_err <= predicted * (1 + 4 / math.sqrt(2 * e.size))
     assert rms_err < 0.5 * float(np.sqrt(np.mean(e ** 2)))
 
@@ -95,8 +99,6 @@ def test_a_rendering_worse_than_the_floor_says_is_shrunk_and_reported_honestly()
     true floor, where the quantisation and the local mean add their share) and shrinks the map towards 1, so
     it is still no worse than the nominal thresholds and its reported spread is as honest as the analysis of
     the first test says (same tolerance)."""
-    from ev3dgs.train.threshold_map import SMOOTH_PX
-
     rng = np.random.default_rng(0)
     theta, s, sigma = 0.05, 0.1, 0.15
     e = np.clip(s * rng.standard_normal((2, H, W)), -0.6, None)
@@ -104,12 +106,7 @@ def test_a_rendering_worse_than_the_floor_says_is_shrunk_and_reported_honestly()
     told = _fit(views, theta, s, floor=sigma ** 2)
     fooled = _fit(views, theta, s, floor=sigma ** 2 / 100)
     assert (fooled.calibration > 10 * told.calibration).all()
-    err = fooled.multiplier.numpy() - (1 + e)
-    rms_err = float(np.sqrt(np.mean(err ** 2)))
-    spread2 = fooled.spread.numpy() ** 2
-    bias2 = ((theta ** 2 / 6) / (1.5 ** 2 / 3 / 16)) ** 2 * (1 + e) ** 2
-    local2 = _lowpass_gain(SMOOTH_PX)[None] * (s ** 2 + spread2)
-    predicted = float(np.sqrt(np.mean(spread2 + bias2 + local2)))
+    rms_err, predicted = _error_and_prediction(fooled, e, theta, s)
     assert rms_err <= predicted * (1 + 4 / math.sqrt(2 * e.size))
     assert rms_err < float(np.sqrt(np.mean(e ** 2)))
 

@@ -108,12 +108,14 @@ def map_accuracy(scene: str, theta: float, rel: float, run: Path) -> dict:
     informed = tmap.spread.numpy() < 0.5 * rel
 
     def rms(x):
-        return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+        return float(np.sqrt(np.mean(x ** 2)))
 
-    return {"rms_error": rms(fitted - truth), "rms_nominal": rms(1 - truth),
-            "informed_fraction": float(informed.mean()), "rms_error_informed": rms((fitted - truth)[informed]),
-            "rms_nominal_informed": rms((1 - truth)[informed]),
-            "correlation_informed": float(np.corrcoef(fitted[informed], truth[informed])[0, 1])}
+    out = {"rms_error": rms(fitted - truth), "rms_nominal": rms(1 - truth), "informed_fraction": float(informed.mean()),
+           "rms_error_informed": None, "rms_nominal_informed": None, "correlation_informed": None}
+    if informed.sum() >= 2:   # none where the calibration finds the model's error swamping the pattern
+        out.update(rms_error_informed=rms((fitted - truth)[informed]), rms_nominal_informed=rms((1 - truth)[informed]),
+                   correlation_informed=float(np.corrcoef(fitted[informed], truth[informed])[0, 1]))
+    return out
 
 
 def _job(job: dict) -> dict:
