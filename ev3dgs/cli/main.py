@@ -276,9 +276,10 @@ def build_parser():
                    help="optimise the ON/OFF contrast thresholds (log intensity) with the model "
                         "(default: off, the scene file's thresholds are kept fixed)")
     t.add_argument("--threshold-map", action="store_true",
-                   help="learn each pixel's ON and OFF thresholds (the sensor's fixed-pattern mismatch) with "
-                        "the model, under a prior of the scene's mismatch or --event-mismatch; the noise norm "
-                        "only; no effect where the mismatch is 0 (default: off)")
+                   help="estimate each pixel's ON and OFF thresholds (the sensor's fixed-pattern mismatch) "
+                        "from the events as the model fits, with the scene's mismatch or --event-mismatch as "
+                        "prior; for sensors with a large pixel-to-pixel spread; noise norm only; no effect "
+                        "where the mismatch is 0 (default: off)")
     t.add_argument("--refine-poses", action="store_true",
                    help="learn per-view SE(3) corrections of each exposure's trajectory (start and end, "
                         "interpolated over the sub-poses) with the model; saves RUN/trajectory.npz, which eval "
