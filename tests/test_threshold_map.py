@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from ev3dgs.train.losses import FLOOR_MIN, noise_event_loss
@@ -163,6 +163,8 @@ def test_without_events_the_prior_keeps_the_nominal_thresholds():
 @settings(max_examples=40, deadline=None)
 @given(theta=st.floats(0.01, 1.0), s=st.floats(0.01, 1.0), count=st.integers(0, 10_000),
        scale=st.floats(0.0, 30.0), floor=st.floats(1e-4, 1.0), seed=st.integers(0, 2 ** 16))
+# large counts firing both ways in the same bins: the normal matrix's determinant is all rounding there
+@example(theta=1.0, s=1.0, count=1926, scale=6.0, floor=1.0, seed=1)
 def test_map_and_event_term_finite_with_finite_gradients(theta, s, count, scale, floor, seed):
     """Extreme counts, thresholds, spreads, rendered log intensities (down to the knee, up to e^30) and
     floors: the map stays finite and inside its bounds, its spread below the prior's, and the event term

@@ -78,11 +78,13 @@ class ThresholdMap:
         self._solve()
 
     def _solve(self) -> None:
-        t = self.stats.sum(0)
+        t = self.stats.sum(0).to(torch.float64)   # in double: the sums reach ~1e7 where counts are large
         p = 1.0 / (self.s * self.s)
         m00, m11, m01 = t[0] + p, t[1] + p, t[2]
         r0, r1 = t[3] + p, t[4] + p              # the prior pulls towards m = 1
-        det = m00 * m11 - m01 * m01              # > 0: both diagonals exceed |m01| by the prior (Cauchy-Schwarz)
+        # det = (a + p)(b + p) - c^2 >= p (a + b) + p^2 since a b >= c^2 (Cauchy-Schwarz); where A_on and
+        # A_off are proportional, a b - c^2 is all rounding and can come out negative: hold it to the bound
+        det = torch.maximum(m00 * m11 - m01 * m01, p * (m00 + m11) - p * p)
         self.fitted = m = torch.stack([(m11 * r0 - m01 * r1) / det,
                                        (m00 * r1 - m01 * r0) / det]).clamp(MIN_MULTIPLIER, MAX_MULTIPLIER)
         self.spread = torch.stack([(m11 / det).sqrt(), (m00 / det).sqrt()])
@@ -116,9 +118,11 @@ class ThresholdMap:
                 excess = ((m[j][sel] - 1) ** 2).mean() - (kk * s2).mean()
                 c[j] = (excess / (kk * sig2[j][sel]).mean()).clamp(min=1.0)
         k2 = s2 / (s2 + c * sig2)
-        self.calibration = c.flatten()
-        self.multiplier = (1 + (k2 / k) * (m - 1)).clamp(MIN_MULTIPLIER, MAX_MULTIPLIER)
-        self.spread = (k2 * c * sig2).sqrt()
+        dtype = self.stats.dtype
+        self.calibration = c.flatten().to(dtype)
+        self.multiplier = (1 + (k2 / k) * (m - 1)).clamp(MIN_MULTIPLIER, MAX_MULTIPLIER).to(dtype)
+        self.spread = (k2 * c * sig2).sqrt().to(dtype)
+        self.fitted = self.fitted.to(dtype)
 
     def state_dict(self) -> dict:
         return {"stats": self.stats.clone()}
