@@ -13,7 +13,9 @@ Blur-view and novel-view PSNR, mean over seeds; wall time per run.
         [--merge EARLIER.json]
 
 `make study-event-term` runs the noise norm, blur-only and the oracle on seeds 0 and 1, and the count norm on
-seed 0 (tools/results/study_event_term_count.json), merged into one table and plot.
+seed 0 (tools/results/study_event_term_count.json), merged into one table and plot; then the noise norm with
+per-pixel thresholds (``--threshold-map``, variant blur+event-map) at 10 % and 40 % mismatch, whose runs also
+record how close the fitted thresholds came to the ones the simulator drew (tools/results/study_event_term_map.json).
 
 Runs go two at a time by default (one per core, one thread each) and are cached by settings and trainer code
 in --cache (tools/bench/bench_fidelity.py's run_one), so an interrupted study resumes.
