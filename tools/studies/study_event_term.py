@@ -47,9 +47,16 @@ def cell_name(theta: float, rel: float) -> str:
     return f"t{theta:g}_m{rel:g}"
 
 
+def cell_dvs(spec, theta: float, rel: float):
+    """The DVS settings of a cell: symmetric thresholds theta, per-pixel spread rel * theta (none at rel 0)."""
+    from ev3dgs.sim.config import ThresholdMismatch
+
+    return replace(spec.sensor.dvs, pos_threshold=theta, neg_threshold=theta,
+                   threshold_mismatch=ThresholdMismatch(sigma=rel * theta) if rel > 0 else None)
+
+
 def make_cells(scene: str, thetas, rels, render: dict, cache: Path, quiet: bool) -> dict:
     """{cell name: scene file}; the Blender render is done once and shared through its cache folder."""
-    from ev3dgs.sim.config import ThresholdMismatch
     from ev3dgs.sim.dataset import _cache_key, make_dataset
     from ev3dgs.sim.scenes import load_scene, resolve_render
 
@@ -72,9 +79,7 @@ def make_cells(scene: str, thetas, rels, render: dict, cache: Path, quiet: bool)
             link = path.parent / shared.name
             if shared.exists() and not link.exists():
                 link.symlink_to(shared.resolve(), target_is_directory=True)
-            dvs = replace(spec.sensor.dvs, pos_threshold=theta, neg_threshold=theta,
-                          threshold_mismatch=ThresholdMismatch(sigma=rel * theta) if rel > 0 else None)
-            cell = replace(spec, sensor=replace(spec.sensor, dvs=dvs))
+            cell = replace(spec, sensor=replace(spec.sensor, dvs=cell_dvs(spec, theta, rel)))
             t = time.perf_counter()
             make_dataset(cell, r, path, seed=0, quiet=quiet, keep_cache=True)
             if not shared.exists():   # the first cell rendered: its cache becomes the shared one
@@ -92,19 +97,16 @@ def map_accuracy(scene: str, theta: float, rel: float, run: Path) -> dict:
     nominal thresholds' own error (the true pattern's RMS)."""
     import torch
 
-    from ev3dgs.sim.config import ThresholdMismatch
     from ev3dgs.sim.dvs import DVSSimulator
     from ev3dgs.sim.scenes import load_scene
     from ev3dgs.train.threshold_map import ThresholdMap
 
     spec = load_scene(scene)
-    dvs = replace(spec.sensor.dvs, pos_threshold=theta, neg_threshold=theta,
-                  threshold_mismatch=ThresholdMismatch(sigma=rel * theta))
     state = torch.load(run / "ckpt.pt", map_location="cpu", weights_only=True)["threshold_map"]
     n_views, _, h, w = state["stats"].shape
     tmap = ThresholdMap(rel, n_views, h, w, "cpu")
     tmap.load_state_dict(state)
-    sim = DVSSimulator(h, w, dvs, seed=0, isp=spec.sensor.isp)
+    sim = DVSSimulator(h, w, cell_dvs(spec, theta, rel), seed=0, isp=spec.sensor.isp)   # the cells' seed
     truth = np.stack([sim.c_on, sim.c_off]).reshape(2, h, w) / theta
     fitted = tmap.multiplier.numpy()
     informed = tmap.spread.numpy() < 0.5 * rel
