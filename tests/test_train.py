@@ -108,7 +108,7 @@ def test_training_improves_the_sharp_views(scene_path, tmp_path):
     assert len(log) == 150 and all(np.isfinite(r["loss"]) for r in log) and log[-1]["event"] > 0
 
 
-@pytest.mark.parametrize("extra", [{}, {"threshold_map": True}])
+@pytest.mark.parametrize("extra", [{}, {"threshold_map": True}, {"hdr": True}])
 def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
     class Stop(Exception):
         pass
@@ -127,7 +127,7 @@ def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
     for name, p in full.model.params.items():
         assert torch.equal(p, resumed.model.params[name]), name
     assert resumed.step == full.step == 60
-    if extra:
+    if "threshold_map" in extra:
         assert torch.equal(full.threshold_map.multiplier, resumed.threshold_map.multiplier)
         saved = torch.load(tmp_path / "a" / "model.pt", weights_only=False)["threshold_map"]
         assert saved.shape == (2, H, W) and torch.equal(saved, full.threshold_map.multiplier)
@@ -149,6 +149,27 @@ def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_
 
     with pytest.raises(ConfigError, match="threshold-map needs --event-norm noise"):
         cfg(scene_path, threshold_map=True, event_norm="count")
+
+
+def test_the_sh_degree_rises_every_sh_interval_steps(scene_path, tmp_path):
+    """Degree 0 for the first interval, one more per interval after, capped at --sh-degree."""
+    seen = []
+    tr = Trainer(cfg(scene_path, iterations=14, sh_degree=2, sh_interval=4), tmp_path / "run", quiet=True)
+    tr.fit(on_step=lambda trainer, rec: seen.append(trainer.model.active_sh_degree))
+    # the degree a step renders with is raised at its start: steps 1-4 use 0, 5-8 use 1, 9-14 use 2
+    assert seen == [0] * 4 + [1] * 4 + [2] * 6
+
+
+def test_hdr_needs_the_linear_light_blur_model(scene_path, tmp_path):
+    from ev3dgs.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--hdr needs the linear-light blur model"):
+        cfg(scene_path, hdr=True, blur_space="srgb")
+    sc = schema.read(scene_path)   # frames blurred in display values (E2NeRF's data): their blur model is sRGB
+    sc.train.transfer = "display"
+    schema.write(sc, tmp_path / "display.h5")
+    with pytest.raises(ConfigError, match="--hdr needs the linear-light blur model"):
+        Trainer(cfg(str(tmp_path / "display.h5"), hdr=True), tmp_path / "run", quiet=True)
 
 
 def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypatch):
@@ -176,7 +197,8 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
 
 
 @pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"], ["--blur-space", "linear", "--learn-thresholds",
-                                                                      "--event-pairs", "3", "--threshold-map"]])
+                                                                      "--event-pairs", "3", "--threshold-map", "--hdr",
+                                                                      "--sh-interval", "4"]])
 def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
     run = tmp_path / "run"
     assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--init-points", "300",
@@ -185,6 +207,8 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     assert "PSNR" in capsys.readouterr().out
     m = json.loads((run / "metrics.json").read_text())
     assert {"test", "train_sharp", "blurry_input"} <= set(m)
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["hdr"] == ("--hdr" in flags) and saved["sh_interval"] == (4 if "--sh-interval" in flags else 1000)
     assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply")]) == 0
     assert len(load_ply(tmp_path / "m.ply")) > 0
     assert cli.main(["render", str(run), "--out", str(tmp_path / "frames"), "--frames", "3"]) == 0
@@ -196,6 +220,8 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     (["train", "SCENE", "--out", "X", "--subposes", "0"], "subposes"),
     (["train", "SCENE", "--out", "X", "--iterations", "0"], "iterations"),
     (["train", "SCENE", "--out", "X", "--event-pairs", "11"], "event-pairs"),
+    (["train", "SCENE", "--out", "X", "--sh-interval", "0"], "sh-interval"),
+    (["train", "SCENE", "--out", "X", "--hdr", "--blur-space", "srgb"], "hdr needs the linear-light"),
     (["train", "SCENE", "--out", "X", "--device", "cuda"], "CUDA|cuda"),
     (["train", "SCENE", "--out", "X", "--resume"], "no checkpoint"),
     (["eval", "/nonexistent_run"], "not a finished training run"),
@@ -254,3 +280,21 @@ def test_bench_train_speed_worker_fixed_count(scene_path):
     assert rec["densify"] is False and rec["gaussians"] == 5000 and rec["mean_gaussians"] == 5000
     assert rec["cpu_ms_per_step"] > 0
     assert math.isclose(rec["cpu_ms_per_step_per_1k"], rec["cpu_ms_per_step"] * 1000 / 5000, rel_tol=1e-12)
+
+
+def test_bench_train_options_times_every_variant_at_its_sh_degree(scene_path, tmp_path):
+    """tools/bench/bench_train_options.py: each variant timed, the SH variants at degree 3 when timing starts
+    and the others at 0, ratios against the default's median."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "bench"))
+    from bench_train_options import VARIANTS, main
+
+    out = tmp_path / "o.json"
+    assert main(["--scene", scene_path, "--rounds", "2", "--init-points", "200", "--json", str(out),
+                 "--plot", str(tmp_path / "o.png")]) == 0
+    res = json.loads(out.read_text())
+    assert set(res["ms_per_step"]) == set(VARIANTS) and res["ratio_to_default"]["default"] == 1.0
+    assert res["sh_degree"] == {"default": 0, "--hdr": 0, "SH degree 3": 3, "--hdr, SH degree 3": 3}
+    assert all(v > 0 for v in res["ms_per_step"].values()) and (tmp_path / "o.png").stat().st_size > 1000

@@ -89,7 +89,8 @@ def _train(args) -> int:
         event_norm=args.event_norm, event_mismatch=args.event_mismatch,
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
-        learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, sh_degree=args.sh_degree,
+        learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, hdr=args.hdr,
+        sh_degree=args.sh_degree, sh_interval=args.sh_interval,
         init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
         device=args.device, threads=args.threads, backend=args.backend,
         refine_poses=args.refine_poses, pose_lr=args.pose_lr, pose_lr_final=args.pose_lr_final,
@@ -280,6 +281,11 @@ def build_parser():
                         "from the events as the model fits, with the scene's mismatch or --event-mismatch as "
                         "prior; for sensors with a large pixel-to-pixel spread; noise norm only; no effect "
                         "where the mismatch is 0 (default: off)")
+    t.add_argument("--hdr", action="store_true",
+                   help="let the model hold radiance above the frame's full scale (specular highlights, lamps): "
+                        "renders above 1 decode to up to 10^4 x full scale, the blurry frame is modelled as "
+                        "the exposure's integral clipped by the sensor, and the sharp renders clip at 1; "
+                        "linear-light blur model only (default: off)")
     t.add_argument("--refine-poses", action="store_true",
                    help="learn per-view SE(3) corrections of each exposure's trajectory (start and end, "
                         "interpolated over the sub-poses) with the model; saves RUN/trajectory.npz, which eval "
@@ -310,6 +316,10 @@ def build_parser():
                         "z the optical axis: the roll gets its own Adam scale) (default %(default)s)")
     t.add_argument("--sh-degree", type=int, default=3, help="spherical-harmonics degree of the colours, 0-3 "
                                                            "(default %(default)s)")
+    t.add_argument("--sh-interval", type=int, default=1000,
+                   help="raise the active spherical-harmonics degree by one every this many steps, up to "
+                        "--sh-degree (3DGS: 1000 of 30 000 steps); the colours stay view-independent for the "
+                        "first N steps, so for short runs use about --iterations / 30 (default %(default)s)")
     t.add_argument("--init-points", type=int, default=20000,
                    help="random initial Gaussians inside the scene bounds when the file has no /points "
                         "(default %(default)s)")

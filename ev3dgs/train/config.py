@@ -49,6 +49,8 @@ class TrainConfig:
     oracle: bool = False              # the upper bound: plain 3DGS on the sharp frames at their sharp poses
     learn_thresholds: bool = False
     threshold_map: bool = False       # learn per-pixel ON/OFF thresholds (fixed-pattern mismatch), noise norm
+    hdr: bool = False                 # renders above 1 are radiance above full scale; the blur clips after
+                                      # the exposure integral (losses.srgb_to_linear_hdr_torch)
     ssim_lambda: float = 0.2
     sh_degree: int = 3
     sh_interval: int = 1000           # raise the active SH degree every this many steps
@@ -83,11 +85,13 @@ class TrainConfig:
         check(0 <= self.event_pairs <= n_pairs,
               f"--event-pairs must be in [0, {n_pairs}] ({self.subposes} sub-poses have {n_pairs} pairs)")
         check(self.blur_space in ("auto", "srgb", "linear"), "--blur-space must be auto, srgb or linear")
+        check(not (self.hdr and self.blur_space == "srgb"),
+              "--hdr needs the linear-light blur model, not --blur-space srgb")
         check(self.event_domain in ("auto", "linear", "display"), "--event-domain must be auto, linear or display")
         check(not (self.oracle and self.naive), "--oracle and --naive are different variants: give one")
         check(0 <= self.ssim_lambda <= 1, "ssim lambda must be in [0, 1]")
         check(0 <= self.sh_degree <= 3, "--sh-degree must be in [0, 3]")
-        check(self.sh_interval >= 1, "sh interval must be >= 1")
+        check(self.sh_interval >= 1, "--sh-interval must be >= 1")
         check(self.init_points >= 1, "--init-points must be >= 1")
         check(0 < self.init_opacity < 1, "init opacity must be in (0, 1)")
         check(self.seed >= 0, "--seed must be >= 0")

@@ -39,6 +39,24 @@ def srgb_to_linear_torch(x: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= _SRGB_KNEE, low, high)
 
 
+# Radiance above full scale (--hdr). A render above 1 continues the sRGB EOTF with an exponential of the same
+# value and slope at 1: linear = 1 + (s / HDR_RATE) * (exp(HDR_RATE * (x - 1)) - 1), s = 2.4 / 1.055 the EOTF's
+# slope at 1, so 1.5 decodes to 16x full scale and 1.75 to 115x (a specular highlight), where the plain EOTF
+# would need a render of 7.7; renders past HDR_MAX_DISPLAY (1e4x full scale) are held there (zero gradient).
+HDR_RATE = 8.0
+HDR_MAX_LINEAR = 1.0e4
+_SRGB_SLOPE_AT_1 = 2.4 / 1.055
+HDR_MAX_DISPLAY = 1.0 + math.log1p((HDR_MAX_LINEAR - 1.0) * HDR_RATE / _SRGB_SLOPE_AT_1) / HDR_RATE
+
+
+def srgb_to_linear_hdr_torch(x: torch.Tensor) -> torch.Tensor:
+    """``srgb_to_linear_torch`` below 1; above it the exponential continuation of the HDR note above, C1 at 1
+    and capped at HDR_MAX_LINEAR, so values and gradients stay finite for any input."""
+    over = torch.clamp(x, min=1.0, max=HDR_MAX_DISPLAY) - 1.0
+    high = 1.0 + (_SRGB_SLOPE_AT_1 / HDR_RATE) * torch.expm1(HDR_RATE * over)
+    return torch.where(x > 1.0, high, srgb_to_linear_torch(torch.clamp(x, max=1.0)))
+
+
 def linear_to_srgb_torch(x: torch.Tensor) -> torch.Tensor:
     """Inverse sRGB EOTF (linear -> display [0,1]). Clamped at 0 below; the x^(1/2.4) branch only sees values
     >= its knee, so the infinite slope of the power at 0 never reaches the gradient."""
@@ -97,7 +115,8 @@ def _check_linear(renders: torch.Tensor, linear):
 def blur_average(renders: torch.Tensor, space: str = "srgb", linear: torch.Tensor | None = None) -> torch.Tensor:
     """(K, H, W, 3) sub-pose renders -> (H, W, 3) the blurry frame they make: the mean of the display values
     (``space="srgb"``) or the mean in linear light, re-encoded (``space="linear"``; ``linear``: the renders
-    already through ``srgb_to_linear_torch``, used instead of decoding them again)."""
+    already through ``srgb_to_linear_torch`` or ``srgb_to_linear_hdr_torch``, used instead of decoding them
+    again)."""
     if renders.ndim != 4:
         raise ValueError(f"renders must be (K, H, W, 3), got {tuple(renders.shape)}")
     if space == "srgb":
@@ -115,10 +134,15 @@ def blur_loss(renders: torch.Tensor, target: torch.Tensor, lam: float = 0.2, spa
     return average_loss(blur_average(renders, space), target, lam)
 
 
-def average_loss(avg: torch.Tensor, target: torch.Tensor, lam: float = 0.2) -> torch.Tensor:
+def average_loss(avg: torch.Tensor, target: torch.Tensor, lam: float = 0.2, clip: bool = False) -> torch.Tensor:
     """blur_loss from the (H, W, 3) average (``blur_average``) the caller already has (the trainer keeps it
-    for the step's PSNR): (1-lam)*MSE + lam*(1-SSIM) against the blurry sRGB frame."""
+    for the step's PSNR): (1-lam)*MSE + lam*(1-SSIM) against the blurry sRGB frame. ``clip``: the sensor
+    clips after the exposure integral, so where the frame is at full scale (1.0) the average is compared
+    clipped at 1 (any brighter exposure made that value); elsewhere it is compared unclipped, so an average
+    above an unsaturated value is pulled down."""
     target = target.to(avg.dtype)
+    if clip:
+        avg = torch.where(target >= 1.0, torch.clamp(avg, max=1.0), avg)
     mse = torch.mean((avg - target) ** 2)
     return (1.0 - lam) * mse + lam * (1.0 - ssim(avg, target))
 

@@ -43,7 +43,7 @@ from .data import TrainData, load_train_data
 from .events import pair_list, pose_counts
 from .init import init_bounds
 from .losses import (average_loss, blur_average, log_intensity, noise_event_loss, pose_event_loss,
-                     srgb_to_linear_torch, update_floor)
+                     srgb_to_linear_hdr_torch, srgb_to_linear_torch, update_floor)
 from .metrics import psnr
 from .rng import stream_generator, stream_seed
 
@@ -103,6 +103,9 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.data = load_train_data(cfg.scene, 1 if cfg.naive or cfg.oracle else cfg.subposes, device=self.device,
                                     blur_space=cfg.blur_space, event_domain=cfg.event_domain, oracle=cfg.oracle)
+        if cfg.hdr and self.data.blur_space != "linear":
+            raise ConfigError("--hdr needs the linear-light blur model (--blur-space linear, or a scene whose "
+                              "/train transfer is srgb)")
         self.model = init_model(self.data, cfg, self.device)
         self.optimizers = self.model.make_optimizers(scene_scale=self.data.scene_scale)
         self.means_lr0 = self.optimizers["means"].param_groups[0]["lr"]
@@ -196,11 +199,15 @@ class Trainer:
             self.strategy.step_pre_backward(info)
         target = data.images[v]
         # both losses decode the renders to linear light (blur average in linear light, events from linear
-        # intensity): decode once, so the decode and its backward run once per step
-        lin = (srgb_to_linear_torch(stack) if self.use_events and data.blur_space == "linear"
-               and data.event_transfer == "srgb" else None)
+        # intensity): decode once, so the decode and its backward run once per step. --hdr: renders above 1
+        # decode to radiance above full scale, and the sensor's clip follows the exposure integral
+        if cfg.hdr:
+            lin = srgb_to_linear_hdr_torch(stack)
+        else:
+            lin = (srgb_to_linear_torch(stack) if self.use_events and data.blur_space == "linear"
+                   and data.event_transfer == "srgb" else None)
         avg = blur_average(stack, data.blur_space, linear=lin)  # data.blur_space: "auto" resolved from the scene
-        l_blur = average_loss(avg, target, cfg.ssim_lambda)
+        l_blur = average_loss(avg, target, cfg.ssim_lambda, clip=cfg.hdr)
         loss = l_blur
         l_event = torch.zeros((), device=self.device)
         if self.use_events:
