@@ -52,7 +52,7 @@ study: setup
 	$(BIN)/python tools/studies/study_render.py
 	$(BIN)/python tools/studies/study_train.py
 
-# the event term against the contrast threshold and its mismatch on one scene (~45 min on 2 cores)
+# the event term against the contrast threshold and its mismatch on one scene (about 1.5 h on 2 cores)
 study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-count --seeds 0 \
 		--json tools/results/study_event_term_count.json
@@ -62,6 +62,11 @@ study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-map --mismatch 0.1 0.4 \
 		--merge tools/results/study_event_term.json \
 		--json tools/results/study_event_term_map.json --plot tools/results/study_event_term_map.png
+	$(BIN)/python tools/studies/study_event_term.py --variants blur-only blur+event blur-only-hdr blur+event-hdr \
+		blur+event-sh --thresholds 0.05 --mismatch 0.1 --blur-fit --json tools/results/study_event_term_hdr05.json
+	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-hdr-sh blur-only-hdr-sh oracle-sh \
+		--mismatch 0.1 --blur-fit --merge tools/results/study_event_term.json tools/results/study_event_term_hdr05.json \
+		--json tools/results/study_event_term_hdr.json --plot tools/results/study_event_term_hdr.png
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
 # on 2 cores after study-event-term) and lowlight (frame noise), two seeds

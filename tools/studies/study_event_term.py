@@ -15,7 +15,10 @@ Blur-view and novel-view PSNR, mean over seeds; wall time per run.
 `make study-event-term` runs the noise norm, blur-only and the oracle on seeds 0 and 1, and the count norm on
 seed 0 (tools/results/study_event_term_count.json), merged into one table and plot; then the noise norm with
 per-pixel thresholds (``--threshold-map``, variant blur+event-map) at 10 % and 40 % mismatch, whose runs also
-record how close the fitted thresholds came to the ones the simulator drew (tools/results/study_event_term_map.json).
+record how close the fitted thresholds came to the ones the simulator drew (tools/results/study_event_term_map.json);
+then, at 10 % mismatch, radiance above full scale (``--hdr``) and a faster SH schedule (``--sh-interval 33``):
+each alone at threshold 0.05 (tools/results/study_event_term_hdr05.json), both together with blur-only and the
+oracle on the same schedule at every threshold (tools/results/study_event_term_hdr.json).
 
 Runs go two at a time by default (one per core, one thread each) and are cached by settings and trainer code
 in --cache (tools/bench/bench_fidelity.py's run_one), so an interrupted study resumes.
@@ -39,8 +42,15 @@ from pareto import save_json  # noqa: E402
 
 VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="noise"),
             "blur+event-count": dict(event_norm="count"), "oracle": dict(oracle=True),
-            "blur+event-map": dict(event_norm="noise", threshold_map=True)}
-SENSOR_FREE = ("blur-only", "oracle")   # variants that never read the events: one run per seed
+            "blur+event-map": dict(event_norm="noise", threshold_map=True),
+            # radiance above full scale (--hdr) and the SH degree raised every 33 steps instead of 1000
+            "blur-only-hdr": dict(event_loss=False, hdr=True), "blur+event-hdr": dict(event_norm="noise", hdr=True),
+            "blur+event-sh": dict(event_norm="noise", sh_interval=33),
+            "blur+event-hdr-sh": dict(event_norm="noise", hdr=True, sh_interval=33),
+            "blur-only-hdr-sh": dict(event_loss=False, hdr=True, sh_interval=33),
+            "oracle-sh": dict(oracle=True, sh_interval=33)}
+# variants that never read the events: one run per seed, on the events-free cell
+SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh")
 
 
 def cell_name(theta: float, rel: float) -> str:
@@ -122,6 +132,37 @@ def map_accuracy(scene: str, theta: float, rel: float, run: Path) -> dict:
     return out
 
 
+def blur_fit(run: Path) -> dict:
+    """How well a run's model reproduces its training frames through the trainer's own blur model: its
+    sub-pose renders of every training view decoded (with the --hdr continuation if the run used it),
+    averaged in linear light, encoded and clipped, against the blurry frames: PSNR, the share of the squared
+    misfit at saturated pixels (255), and the brightest render as a multiple of full scale."""
+    import torch
+
+    from ev3dgs.splat.rasterize import rasterization
+    from ev3dgs.train.data import load_train_data
+    from ev3dgs.train.evaluate import load_run
+    from ev3dgs.train.losses import linear_to_srgb_torch, srgb_to_linear_hdr_torch, srgb_to_linear_torch
+
+    cfg, m = load_run(run)
+    data = load_train_data(cfg.scene, cfg.subposes)
+    decode = srgb_to_linear_hdr_torch if cfg.hdr else srgb_to_linear_torch
+    sq = sat = 0.0
+    brightest = 0.0
+    with torch.no_grad():
+        for v in range(data.n_views):
+            stack, _, _ = rasterization(m.means, m.quats_normalised, m.scales, m.opacities, m.sh, data.viewmats[v],
+                                        data.K, data.width, data.height, sh_degree=m.active_sh_degree,
+                                        background=data.background, backend="cpu")
+            lin = decode(stack)
+            err = (linear_to_srgb_torch(lin.mean(0)).clamp(0, 1) - data.images[v].to(stack.dtype)) ** 2
+            sq += err.sum().item()
+            sat += err[data.images[v] >= 1].sum().item()
+            brightest = max(brightest, lin.max().item())
+    n = data.n_views * data.height * data.width * 3
+    return {"psnr": float(-10 * np.log10(sq / n)), "saturated_share": sat / sq, "brightest_linear": brightest}
+
+
 def _job(job: dict) -> dict:
     import torch
 
@@ -134,6 +175,8 @@ def _job(job: dict) -> dict:
     out = {**{k: job[k] for k in ("cell", "variant", "seed")}, "metrics": m, "wall": time.perf_counter() - t}
     if job["overrides"].get("threshold_map") and job["rel"] > 0:
         out["map"] = map_accuracy(job["scene"], job["theta"], job["rel"], Path(job["out"]))
+    if job["blur_fit"] and not job["overrides"].get("oracle"):
+        out["blur_fit"] = blur_fit(Path(job["out"]))
     return out
 
 
@@ -161,14 +204,17 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=False)
     for ax, view in zip(axes, ("blur_view", "novel_view")):
-        for v, style in (("blur-only", "k--"), ("oracle", "k:")):
+        for v, col, ls in (("blur-only", "k", "--"), ("oracle", "k", ":"), ("blur-only-hdr-sh", "C4", "--"),
+                           ("oracle-sh", "C4", ":")):
             if v in summary.get("sensor_free", {}):
-                ax.axhline(summary["sensor_free"][v][view][0], color="k", ls=style[1:], lw=1, label=v)
+                ax.axhline(summary["sensor_free"][v][view][0], color=col, ls=ls, lw=1,
+                           label=v if view == "blur_view" else None)
         for rel, col in zip(rels, ("C0", "C1", "C2", "C3", "C4")):
-            for var, ls in (("blur+event", "-"), ("blur+event-count", ":"), ("blur+event-map", "-.")):
+            for var, ls in (("blur+event", "-"), ("blur+event-count", ":"), ("blur+event-map", "-."),
+                            ("blur+event-hdr-sh", (0, (5, 1, 1, 1)))):
                 ys = [summary.get(cell_name(t, rel), {}).get(var, {}).get(view, [np.nan])[0] for t in thetas]
                 if np.isfinite(ys).any():
-                    ax.plot(thetas, ys, ls, color=col, marker="o", ms=3,
+                    ax.plot(thetas, ys, linestyle=ls, color=col, marker="o", ms=3,
                             label=f"{var}, mismatch {rel:g}" if view == "blur_view" else None)
         ax.set_xscale("log")
         ax.set_xticks(thetas, [f"{t:g}" for t in thetas])
@@ -202,6 +248,9 @@ def main(argv=None) -> int:
     ap.add_argument("--merge", nargs="+", default=[],
                     help="earlier JSON outputs of this study whose runs join the summary and the plot (e.g. the "
                          "count norm on fewer seeds)")
+    ap.add_argument("--blur-fit", action="store_true",
+                    help="also score each run's model through its own blur model against the training frames "
+                         "(blur_fit in the JSON; about 10 s per run)")
     ap.add_argument("--json", required=True)
     ap.add_argument("--plot")
     a = ap.parse_args(argv)
@@ -227,7 +276,7 @@ def main(argv=None) -> int:
                 jobs.append(dict(cell=cname, variant=v, seed=seed, scene_path=str(path), overrides=variants[v],
                                  iterations=a.iterations, init_points=a.init_points,
                                  out=str(Path(a.cache) / "runs" / f"{cname}_{v}_s{seed}"), scene=a.scene,
-                                 theta=theta, rel=rel))
+                                 theta=theta, rel=rel, blur_fit=a.blur_fit))
 
     def report(r):
         m = r["metrics"]
