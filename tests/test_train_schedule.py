@@ -207,9 +207,9 @@ def test_logged_psnr_blurry_averages_in_the_blur_space(scene, tmp_path, monkeypa
         seen.update(renders=renders.detach().double().numpy(), space=sp)
         return real_avg(renders, sp, **kw)
 
-    def spy_loss(avg, target, lam):                 # the blurry frame the loss compares with
+    def spy_loss(avg, target, lam, **kw):           # the blurry frame the loss compares with
         seen.update(target=target.double().numpy())
-        return real_loss(avg, target, lam)
+        return real_loss(avg, target, lam, **kw)
 
     monkeypatch.setattr(T, "blur_average", spy_avg)
     monkeypatch.setattr(T, "average_loss", spy_loss)
