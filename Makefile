@@ -65,7 +65,7 @@ study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur-only blur+event blur-only-hdr blur+event-hdr \
 		blur+event-sh --thresholds 0.05 --mismatch 0.1 --blur-fit --json tools/results/study_event_term_hdr05.json
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-hdr-sh blur-only-hdr-sh oracle-sh \
-		--mismatch 0.1 --blur-fit --merge tools/results/study_event_term.json tools/results/study_event_term_hdr05.json \
+		--blur-fit --merge tools/results/study_event_term.json tools/results/study_event_term_hdr05.json \
 		--json tools/results/study_event_term_hdr.json --plot tools/results/study_event_term_hdr.png
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h

@@ -298,7 +298,9 @@ def main(argv=None) -> int:
            "summary": summary, "runs": runs, "seconds": time.perf_counter() - t0}
     save_json(a.json, res)
     if a.plot:
-        plot(summary, a.thresholds, a.mismatch, Path(a.plot))
+        cells = [c.split("_m") for c in summary if c != "sensor_free"]   # this run's cells and the merged ones
+        plot(summary, sorted({float(t[1:]) for t, _ in cells} | set(a.thresholds)),
+             sorted({float(r) for _, r in cells} | set(a.mismatch)), Path(a.plot))
     return 0
 
 
