@@ -135,14 +135,15 @@ def map_accuracy(scene: str, theta: float, rel: float, run: Path) -> dict:
 def blur_fit(run: Path) -> dict:
     """How well a run's model reproduces its training frames through the trainer's own blur model: its
     sub-pose renders of every training view decoded (with the --hdr continuation if the run used it),
-    averaged in linear light, encoded and clipped, against the blurry frames: PSNR, the share of the squared
-    misfit at saturated pixels (255), and the brightest render as a multiple of full scale."""
+    averaged as the trainer averages them (losses.blur_average) and clipped, against the blurry frames: PSNR,
+    the share of the squared misfit at saturated pixels (255), and the brightest render as a multiple of full
+    scale."""
     import torch
 
     from ev3dgs.splat.rasterize import rasterization
     from ev3dgs.train.data import load_train_data
     from ev3dgs.train.evaluate import load_run
-    from ev3dgs.train.losses import linear_to_srgb_torch, srgb_to_linear_hdr_torch, srgb_to_linear_torch
+    from ev3dgs.train.losses import blur_average, srgb_to_linear_hdr_torch, srgb_to_linear_torch
 
     cfg, m = load_run(run)
     data = load_train_data(cfg.scene, cfg.subposes)
@@ -155,7 +156,7 @@ def blur_fit(run: Path) -> dict:
                                         data.K, data.width, data.height, sh_degree=m.active_sh_degree,
                                         background=data.background, backend="cpu")
             lin = decode(stack)
-            err = (linear_to_srgb_torch(lin.mean(0)).clamp(0, 1) - data.images[v].to(stack.dtype)) ** 2
+            err = (blur_average(stack, data.blur_space, linear=lin).clamp(0, 1) - data.images[v].to(stack.dtype)) ** 2
             sq += err.sum().item()
             sat += err[data.images[v] >= 1].sum().item()
             brightest = max(brightest, lin.max().item())
