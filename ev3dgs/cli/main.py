@@ -90,7 +90,7 @@ def _train(args) -> int:
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
         learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, hdr=args.hdr,
-        sh_degree=args.sh_degree, sh_interval=args.sh_interval,
+        edi_prior=args.edi_prior, edi_anneal=args.edi_anneal, sh_degree=args.sh_degree, sh_interval=args.sh_interval,
         init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
         device=args.device, threads=args.threads, backend=args.backend,
         refine_poses=args.refine_poses, pose_lr=args.pose_lr, pose_lr_final=args.pose_lr_final,
@@ -286,6 +286,14 @@ def build_parser():
                         "renders above 1 decode to up to 10^4 x full scale, the blurry frame is modelled as "
                         "the exposure's integral clipped by the sensor, and the sharp renders clip at 1; "
                         "linear-light blur model only (default: off)")
+    t.add_argument("--edi-prior", type=finite_float, default=0.0, metavar="W",
+                   help="add the event double integral prior with weight W (per unit of chi-square, like "
+                        "--event-weight under the noise norm): each sub-pose render is pulled towards the sharp "
+                        "frame the blurry frame and the exposure's events give (EDI), weighted by that "
+                        "target's expected error, saturated pixels left out; noise norm only (default 0, off)")
+    t.add_argument("--edi-anneal", type=finite_float, default=0.5, metavar="F",
+                   help="the EDI prior's weight falls linearly to 0 at this fraction of --iterations "
+                        "(default %(default)s)")
     t.add_argument("--refine-poses", action="store_true",
                    help="learn per-view SE(3) corrections of each exposure's trajectory (start and end, "
                         "interpolated over the sub-poses) with the model; saves RUN/trajectory.npz, which eval "

@@ -51,6 +51,8 @@ class TrainConfig:
     threshold_map: bool = False       # learn per-pixel ON/OFF thresholds (fixed-pattern mismatch), noise norm
     hdr: bool = False                 # renders above 1 are radiance above full scale; the blur clips after
                                       # the exposure integral (losses.srgb_to_linear_hdr_torch)
+    edi_prior: float = 0.0            # weight of the EDI prior (edi_prior.py), per unit of chi-square; 0 = off
+    edi_anneal: float = 0.5           # the prior's weight falls linearly to 0 at this fraction of the run
     ssim_lambda: float = 0.2
     sh_degree: int = 3
     sh_interval: int = 1000           # raise the active SH degree every this many steps
@@ -87,6 +89,12 @@ class TrainConfig:
         check(self.blur_space in ("auto", "srgb", "linear"), "--blur-space must be auto, srgb or linear")
         check(not (self.hdr and self.blur_space == "srgb"),
               "--hdr needs the linear-light blur model, not --blur-space srgb")
+        check(self.edi_prior >= 0, "--edi-prior must be >= 0")
+        check(0 < self.edi_anneal <= 1, "--edi-anneal must be in (0, 1]")
+        check(not self.edi_prior or self.event_norm == "noise",
+              "--edi-prior needs --event-norm noise (its weights come from the noise model)")
+        check(not self.edi_prior or self.uses_events, "--edi-prior needs the event loss (events, not --oracle "
+              "or --naive, --event-weight > 0)")
         check(self.event_domain in ("auto", "linear", "display"), "--event-domain must be auto, linear or display")
         check(not (self.oracle and self.naive), "--oracle and --naive are different variants: give one")
         check(0 <= self.ssim_lambda <= 1, "ssim lambda must be in [0, 1]")

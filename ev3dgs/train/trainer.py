@@ -40,6 +40,7 @@ from ..splat.strategy import DefaultStrategy, scaled_schedule
 from .checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .data import TrainData, load_train_data
+from .edi_prior import anneal_factor, edi_prior_loss
 from .events import pair_list, pose_counts
 from .init import init_bounds
 from .losses import (average_loss, blur_average, log_intensity, noise_event_loss, pose_event_loss,
@@ -133,6 +134,7 @@ class Trainer:
 
             self.threshold_map = ThresholdMap(self.rel_mismatch, self.data.n_views, self.data.height,
                                               self.data.width, self.device)
+        self.edi = self._edi_inputs() if cfg.edi_prior > 0 and self.use_events else None  # --edi-prior
         self.pose_refiner = None  # --refine-poses (issue 16): learnable exposure-trajectory corrections
         if cfg.refine_poses:
             from .pose_refine import PoseRefiner
@@ -153,6 +155,20 @@ class Trainer:
         else:
             rel = DEFAULT_REL_MISMATCH
         return float(rel), float(d.noise_rate_hz or 0.0)
+
+    def _edi_inputs(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """--edi-prior: each view's (N, H, W) log intensity of the blurry frame and where the EDI target holds
+        (edi_prior.valid_mask). Refused where the event intensity is not linear in what the blur model averages."""
+        from .edi_prior import COMPATIBLE, valid_mask
+
+        d = self.data
+        if (d.blur_space, d.event_transfer) not in COMPATIBLE:
+            raise ConfigError(f"--edi-prior: the blurry frame's event intensity is not the mean of the sub-poses' "
+                              f"with the {d.blur_space} blur model and {d.event_transfer} events (give "
+                              f"--blur-space linear for sRGB scenes)")
+        with torch.no_grad():
+            log_b = log_intensity(d.images, d.color_filter, d.log_knee, d.event_transfer, d.raw_matrix)
+        return log_b, valid_mask(d.images, log_b, d.log_knee)
 
     def _next_view(self) -> int:
         if not self.view_queue:
@@ -209,7 +225,7 @@ class Trainer:
         avg = blur_average(stack, data.blur_space, linear=lin)  # data.blur_space: "auto" resolved from the scene
         l_blur = average_loss(avg, target, cfg.ssim_lambda, clip=cfg.hdr)
         loss = l_blur
-        l_event = torch.zeros((), device=self.device)
+        l_event = l_edi = torch.zeros((), device=self.device)
         if self.use_events:
             pairs = pair_list(len(poses), cfg.event_pairs or "all", self.pair_generator)
             log_l = log_intensity(stack, data.color_filter, data.log_knee, data.event_transfer, data.raw_matrix,
@@ -230,6 +246,13 @@ class Trainer:
                 self.event_floor = update_floor(self.event_floor, estimate)
                 if tmap is not None:  # this view's equations at the current render; the map solved again
                     tmap.update(v, data.bins[v], tp, tn, self.event_floor, log_l, data.log_knee)
+                fade = anneal_factor(self.step, cfg.iterations, cfg.edi_anneal) if self.edi is not None else 0.0
+                if fade > 0:  # --edi-prior: each sub-pose's EDI target, weighted by its expected error
+                    l_edi = edi_prior_loss(log_l, counts, self.edi[0][v], self.edi[1][v], tpm, tnm,
+                                           self.event_floor, data.count_convention, self.rel_mismatch,
+                                           self.noise_rate_hz, t, data.log_knee,
+                                           None if tmap is None else tmap.spread)
+                    loss = loss + cfg.edi_prior * fade * l_edi
             loss = loss + cfg.omega * l_event
         loss.backward()
         self._guard(loss, l_blur, l_event)
@@ -248,7 +271,8 @@ class Trainer:
         with torch.no_grad():  # the blurry frame as the loss saw it (averaged in data.blur_space)
             p = psnr(avg.detach().clamp(0, 1), target)
         return {"step": self.step, "view": v, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
-                "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info}
+                "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info,
+                **({"edi": l_edi.item()} if self.edi is not None else {})}
 
     def trained_parameters(self) -> list[torch.Tensor]:
         """Every tensor a step updates: the Gaussians, the learned thresholds and whatever any optimizer of
