@@ -14,7 +14,8 @@ sub-pose from the first step, where the blur loss alone says little about which 
 
 The target is wrong where the frame clips (a saturated pixel only bounds Y_B from below: masked) and where
 the counts are: the error of log Y_k is -sum_j w_j (e_j - e_k) with w = softmax(E) and e the count errors,
-variance about sum_j w_j^2 v_jk (v: ``count_variance`` of the pair, quantisation, mismatch and noise events).
+its variance follows from the noise norm's error model of the counts (quantisation, mismatch, noise events:
+``edi_variance``).
 As in the noise norm, the model's own error (floor * g) bounds each pixel's weight. The weight falls
 linearly to zero at ``anneal`` of the run: early on it gives the sub-poses their sharp targets; later the
 blur and event losses, which also cover saturated pixels and colour, take over.
@@ -25,7 +26,7 @@ import math
 
 import torch
 
-from .losses import count_variance, expected_log_change
+from .losses import expected_log_change
 
 # blur model / event intensity combinations in which the event pixel's intensity is linear in what the blur
 # model averages (so the blurry frame's intensity is the mean of the sub-pose intensities)
@@ -56,23 +57,40 @@ def edi_log_targets(log_b: torch.Tensor, change: torch.Tensor) -> torch.Tensor:
 def edi_variance(change: torch.Tensor, counts: torch.Tensor, tp: torch.Tensor, tn: torch.Tensor,
                  rel_mismatch: float, noise_rate: float = 0.0, times_s=None,
                  spread: torch.Tensor | None = None) -> torch.Tensor:
-    """(K, H, W) expected squared error of each sub-pose's EDI log target from the counts: sum_j w_j^2 v_jk,
-    w = softmax_j(E_j), v_jk = count_variance of the pair (j, k) (0 for j = k). ``times_s``: the K sub-pose
-    times in seconds, for the noise events (rate ``noise_rate`` per pixel and second)."""
-    k = change.shape[0]
-    pairs = [(a, b) for a in range(k) for b in range(a + 1, k)]
-    idx = torch.as_tensor(pairs, dtype=torch.long, device=change.device)
-    noise = None
+    """(K, H, W) expected squared error of each sub-pose's EDI log target, to first order in the count errors.
+
+    The target's error is d_k = e_k - sum_j w_j e_j, w = softmax_j(E_j), e_j the error of E_j, with the noise
+    norm's error sources (``losses.count_variance``) taken per pose:
+
+    * quantisation: the signal's place in the threshold band, independent at every pose, variance theta^2/12:
+      theta^2/12 ((1 - w_k)^2 + sum_{j != k} w_j^2) = theta^2/12 (1 - 2 w_k + sum_j w_j^2);
+    * mismatch: every event moves the reference by the pixel's own threshold, theta (1 + e), e ~ N(0, s^2):
+      (s (theta_on |n_on,k - nbar_on| + theta_off |n_off,k - nbar_off|))^2, nbar = sum_j w_j n_j the
+      weighted mean of the cumulative counts (with ``spread``, a threshold map's per-pixel remaining error,
+      ON and OFF independently, as count_variance);
+    * noise events: Poisson increments between consecutive sub-poses (rate ``noise_rate`` per pixel and
+      second, ``times_s`` the K sub-pose times), each moving the estimate by a threshold: theta^2 rate
+      sum_i dt_i (1[k >= i] - sum_{j >= i} w_j)^2.
+
+    (K, H, W) change (expected_log_change), (K, 2, H, W) cumulative counts; tp, tn scalars or (H, W) maps."""
+    c = counts.to(change.dtype)
+    w = torch.softmax(change, dim=0)
+    theta2 = 0.5 * (tp * tp + tn * tn)
+    var = theta2 / 12.0 * (1.0 - 2.0 * w + (w * w).sum(dim=0))
+    dev = (c - (w[:, None] * c).sum(dim=0)).abs()                 # (K, 2, H, W)
+    if spread is None:
+        var = var + (rel_mismatch * (tp * dev[:, 0] + tn * dev[:, 1])) ** 2
+    else:
+        var = var + (spread[0] * tp * dev[:, 0]) ** 2 + (spread[1] * tn * dev[:, 1]) ** 2
     if noise_rate > 0 and times_s is not None:
-        noise = torch.as_tensor([noise_rate * abs(float(times_s[b]) - float(times_s[a])) for a, b in pairs],
-                                dtype=change.dtype, device=change.device)
-    v = count_variance(counts, idx, tp, tn, rel_mismatch, noise, spread)      # (P, H, W)
-    w2 = torch.softmax(change, dim=0) ** 2                                    # (K, H, W)
-    out = torch.zeros_like(change)
-    for p, (a, b) in enumerate(pairs):   # v_ab enters pose a's target with w_b^2 and pose b's with w_a^2
-        out[a] = out[a] + w2[b] * v[p]
-        out[b] = out[b] + w2[a] * v[p]
-    return out
+        k = change.shape[0]
+        dt = [abs(float(times_s[i]) - float(times_s[i - 1])) for i in range(1, k)]
+        tail = torch.flip(torch.cumsum(torch.flip(w, [0]), dim=0), [0])   # tail[i] = sum_{j >= i} w_j
+        for i in range(1, k):
+            for kk in range(k):
+                coef = (1.0 if kk >= i else 0.0) - tail[i]
+                var[kk] = var[kk] + theta2 * noise_rate * dt[i - 1] * coef * coef
+    return var
 
 
 def edi_prior_loss(log_l: torch.Tensor, counts: torch.Tensor, log_b: torch.Tensor, mask: torch.Tensor,
