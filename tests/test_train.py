@@ -108,7 +108,8 @@ def test_training_improves_the_sharp_views(scene_path, tmp_path):
     assert len(log) == 150 and all(np.isfinite(r["loss"]) for r in log) and log[-1]["event"] > 0
 
 
-@pytest.mark.parametrize("extra", [{}, {"threshold_map": True}, {"hdr": True}])
+@pytest.mark.parametrize("extra", [{}, {"threshold_map": True}, {"hdr": True},
+                                   {"edi_prior": 0.05, "edi_anneal": 1.0}])
 def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
     class Stop(Exception):
         pass
@@ -172,6 +173,28 @@ def test_hdr_needs_the_linear_light_blur_model(scene_path, tmp_path):
         Trainer(cfg(str(tmp_path / "display.h5"), hdr=True), tmp_path / "run", quiet=True)
 
 
+def test_edi_prior_moves_the_fit_while_it_fades_and_is_refused_where_it_has_no_meaning(scene_path, tmp_path):
+    """The prior's term is logged and positive until its anneal point, zero after; it changes the run; it needs
+    the noise norm and the events, and a blur model in which the frame's event intensity is the mean of the
+    sub-poses' (sRGB events averaged as display values are refused)."""
+    from ev3dgs.errors import ConfigError
+
+    tr = Trainer(cfg(scene_path, iterations=20, edi_prior=0.05, edi_anneal=0.5), tmp_path / "a", quiet=True)
+    tr.fit()
+    log = [json.loads(line) for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    assert all(r["edi"] > 0 for r in log[:10]) and all(r["edi"] == 0 for r in log[10:])
+    plain = Trainer(cfg(scene_path, iterations=20), tmp_path / "b", quiet=True)
+    plain.fit()
+    assert not torch.equal(plain.model.params["means"], tr.model.params["means"])
+    for kw, match in (({"event_norm": "count"}, "needs --event-norm noise"),
+                      ({"event_loss": False}, "needs the event loss"), ({"oracle": True}, "needs the event loss"),
+                      ({"edi_anneal": 0.0}, "edi-anneal"), ({"edi_prior": -1.0}, "edi-prior must be")):
+        with pytest.raises(ConfigError, match=match):
+            cfg(scene_path, **{"edi_prior": 0.05, **kw})
+    with pytest.raises(ConfigError, match="--edi-prior: the blurry frame's event intensity"):
+        Trainer(cfg(scene_path, edi_prior=0.05, blur_space="srgb"), tmp_path / "c", quiet=True)
+
+
 def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypatch):
     import ev3dgs.train.trainer as T
 
@@ -198,7 +221,7 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
 
 @pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"], ["--blur-space", "linear", "--learn-thresholds",
                                                                       "--event-pairs", "3", "--threshold-map", "--hdr",
-                                                                      "--sh-interval", "4"]])
+                                                                      "--sh-interval", "4", "--edi-prior", "0.02"]])
 def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
     run = tmp_path / "run"
     assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--init-points", "300",
@@ -209,6 +232,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     assert {"test", "train_sharp", "blurry_input"} <= set(m)
     saved = json.loads((run / "config.json").read_text())
     assert saved["hdr"] == ("--hdr" in flags) and saved["sh_interval"] == (4 if "--sh-interval" in flags else 1000)
+    assert saved["edi_prior"] == (0.02 if "--edi-prior" in flags else 0.0)
     assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply")]) == 0
     assert len(load_ply(tmp_path / "m.ply")) > 0
     assert cli.main(["render", str(run), "--out", str(tmp_path / "frames"), "--frames", "3"]) == 0
@@ -222,6 +246,8 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     (["train", "SCENE", "--out", "X", "--event-pairs", "11"], "event-pairs"),
     (["train", "SCENE", "--out", "X", "--sh-interval", "0"], "sh-interval"),
     (["train", "SCENE", "--out", "X", "--hdr", "--blur-space", "srgb"], "hdr needs the linear-light"),
+    (["train", "SCENE", "--out", "X", "--edi-anneal", "0"], "edi-anneal"),
+    (["train", "SCENE", "--out", "X", "--edi-prior", "0.1", "--no-event-loss"], "edi-prior needs the event loss"),
     (["train", "SCENE", "--out", "X", "--device", "cuda"], "CUDA|cuda"),
     (["train", "SCENE", "--out", "X", "--resume"], "no checkpoint"),
     (["eval", "/nonexistent_run"], "not a finished training run"),

@@ -66,8 +66,9 @@ def edi_variance(change: torch.Tensor, counts: torch.Tensor, tp: torch.Tensor, t
       theta^2/12 ((1 - w_k)^2 + sum_{j != k} w_j^2) = theta^2/12 (1 - 2 w_k + sum_j w_j^2);
     * mismatch: every event moves the reference by the pixel's own threshold, theta (1 + e), e ~ N(0, s^2):
       (s (theta_on |n_on,k - nbar_on| + theta_off |n_off,k - nbar_off|))^2, nbar = sum_j w_j n_j the
-      weighted mean of the cumulative counts (with ``spread``, a threshold map's per-pixel remaining error,
-      ON and OFF independently, as count_variance);
+      weighted mean of the cumulative counts: exact where the two deviations share a sign, an upper bound
+      otherwise, whether one factor moves both polarities (count_variance's model) or each its own (with
+      ``spread``, a threshold map's per-pixel remaining error, ON and OFF independently, as count_variance);
     * noise events: Poisson increments between consecutive sub-poses (rate ``noise_rate`` per pixel and
       second, ``times_s`` the K sub-pose times), each moving the estimate by a threshold: theta^2 rate
       sum_i dt_i (1[k >= i] - sum_{j >= i} w_j)^2.
@@ -99,8 +100,8 @@ def edi_prior_loss(log_l: torch.Tensor, counts: torch.Tensor, log_b: torch.Tenso
                    spread: torch.Tensor | None = None) -> torch.Tensor:
     """Mean over sub-poses and pixels of mask * (log_l[k] - T_k)^2 / (V_k + floor * g_k): T = edi_log_targets
     from the detached counts and blurry frame, V = edi_variance, g_k = 1 / I_k^2 at the rendered intensity
-    (detached, at least the knee), as noise_event_loss. (K, H, W) log_l, (K, 2, H, W) cumulative counts, (H, W)
-    log_b and mask. Finite for any finite input: every denominator is at least floor * g > 0."""
+    (detached, clamped to [knee, 1]), as noise_event_loss. (K, H, W) log_l, (K, 2, H, W) cumulative counts, (H, W)
+    log_b and mask. Finite for any finite input: every denominator is at least floor > 0."""
     if not (floor > 0 and math.isfinite(floor)):
         raise ValueError(f"floor must be finite and > 0, got {floor!r}")
     with torch.no_grad():
@@ -110,7 +111,10 @@ def edi_prior_loss(log_l: torch.Tensor, counts: torch.Tensor, log_b: torch.Tenso
         change = expected_log_change(c, tp, tn, convention)
         target = edi_log_targets(log_b.to(log_l.dtype), change)
         var = edi_variance(change, c, tp, tn, rel_mismatch, noise_rate, times_s, spread)
-        g = log_l.detach().exp().clamp(min=knee) ** -2
+        # the targets lie below full scale, so a render above it is as wrong as one at it: clamping the
+        # intensity to [knee, 1] keeps every denominator at least floor > 0 (var can be 0: a pose that
+        # carries all the exposure's light is the blurry frame itself)
+        g = log_l.detach().exp().clamp(min=knee, max=1.0) ** -2
         weight = mask.to(log_l.dtype) / (var + floor * g)
     r = log_l - target
     return torch.mean(weight * r * r)

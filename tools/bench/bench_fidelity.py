@@ -49,7 +49,9 @@ from ev3dgs.train.trainer import Trainer  # noqa: E402
 VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict(),
             "oracle": dict(oracle=True), "blur+event-map": dict(threshold_map=True),
             "blur+event-hdr": dict(hdr=True), "blur+event-sh": dict(sh_interval=33),
-            "blur+event-hdr-sh": dict(hdr=True, sh_interval=33), "oracle-sh": dict(oracle=True, sh_interval=33)}
+            "blur+event-hdr-sh": dict(hdr=True, sh_interval=33), "oracle-sh": dict(oracle=True, sh_interval=33),
+            "blur+event-edi": dict(edi_prior=8 / 625), "blur+event-hdr-sh-edi": dict(hdr=True, sh_interval=33,
+                                                                                    edi_prior=8 / 625)}
 DEFAULT_VARIANTS = ("naive", "blur-only", "blur+event", "oracle")
 # The full table is sized so that a 2-core CPU finishes it in about an hour (48 runs, two at a time); the
 # issue's example size (128x96, 3000 steps) is ~4x that: --size 128x96 --steps 3000.

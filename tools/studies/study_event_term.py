@@ -52,7 +52,6 @@ VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="
             # the EDI prior (--edi-prior W, W in units of the noise norm's default event weight 8/625), faded
             # out over the first half of the run; alone and with both options above
             "blur+event-edi": dict(event_norm="noise", edi_prior=8 / 625),
-            "blur+event-edi4": dict(event_norm="noise", edi_prior=32 / 625),
             "blur+event-hdr-sh-edi": dict(event_norm="noise", hdr=True, sh_interval=33, edi_prior=8 / 625)}
 # variants that never read the events: one run per seed, on the events-free cell
 SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh")
