@@ -1,5 +1,6 @@
 """What the trainer's fidelity options cost per step: the blur + event step on one scene file with the defaults,
-``--hdr``, the SH degree at 3 (``--sh-interval 1``: degree 3 from the fourth step) and both, one thread.
+``--hdr``, the SH degree at 3 (``--sh-interval 1``: degree 3 from the fourth step), both, and the EDI prior
+(``--edi-prior``, kept on through the timed steps), one thread.
 The variants' steps are interleaved round by round, so a busy machine slows them alike; the result is each
 variant's median ms per step and its ratio to the default's. Densification is off so every variant renders
 the same number of Gaussians. JSON + PNG.
@@ -24,7 +25,8 @@ sys.path.insert(0, str(ROOT / "tools"))
 from pareto import save_json  # noqa: E402
 
 VARIANTS = {"default": {}, "--hdr": {"hdr": True}, "SH degree 3": {"sh_interval": 1},
-            "--hdr, SH degree 3": {"hdr": True, "sh_interval": 1}}
+            "--hdr, SH degree 3": {"hdr": True, "sh_interval": 1},
+            "--edi-prior": {"edi_prior": 8 / 625, "edi_anneal": 1.0}}
 WARMUP = 5   # steps before timing: the SH degree reaches 3 at the fourth step with --sh-interval 1
 
 

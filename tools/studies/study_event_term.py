@@ -18,7 +18,8 @@ per-pixel thresholds (``--threshold-map``, variant blur+event-map) at 10 % and 4
 record how close the fitted thresholds came to the ones the simulator drew (tools/results/study_event_term_map.json);
 then, at 10 % mismatch, radiance above full scale (``--hdr``) and a faster SH schedule (``--sh-interval 33``):
 each alone at threshold 0.05 (tools/results/study_event_term_hdr05.json), both together with blur-only and the
-oracle on the same schedule at every threshold (tools/results/study_event_term_hdr.json).
+oracle on the same schedule at every threshold (tools/results/study_event_term_hdr.json); last, the EDI prior
+(``--edi-prior``) alone and with both options, at 10 % mismatch (tools/results/study_event_term_edi.json).
 
 Runs go two at a time by default (one per core, one thread each) and are cached by settings and trainer code
 in --cache (tools/bench/bench_fidelity.py's run_one), so an interrupted study resumes.
@@ -216,7 +217,8 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
                            label=v if view == "blur_view" else None)
         for rel, col in zip(rels, ("C0", "C1", "C2", "C3", "C4")):
             for var, ls in (("blur+event", "-"), ("blur+event-count", ":"), ("blur+event-map", "-."),
-                            ("blur+event-hdr-sh", (0, (5, 1, 1, 1)))):
+                            ("blur+event-hdr-sh", (0, (5, 1, 1, 1))), ("blur+event-edi", (0, (1, 1))),
+                            ("blur+event-hdr-sh-edi", (0, (3, 1, 1, 1, 1, 1)))):
                 ys = [summary.get(cell_name(t, rel), {}).get(var, {}).get(view, [np.nan])[0] for t in thetas]
                 if np.isfinite(ys).any():
                     ax.plot(thetas, ys, linestyle=ls, color=col, marker="o", ms=3,
