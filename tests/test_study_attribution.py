@@ -166,3 +166,26 @@ def test_run_one_keys_its_cache_on_the_file_scored_on(tmp_path):
     assert "scored_on" not in again and again["scene"] == str(train.resolve())
     assert (out / "model.pt").stat().st_mtime_ns == model                  # scored again, not trained again
     assert again["blur_view"]["psnr"] == first["blur_view"]["psnr"]        # the same frames in both files
+
+
+def test_bench_merge_adds_earlier_runs_once_and_refuses_a_foreign_file(tmp_path):
+    """bench_fidelity --merge: runs of earlier summaries join, first file first, never twice for one
+    (scene, variant, seed), never over a run of this invocation; a file without runs is a one-line usage error."""
+    import argparse
+    import json
+
+    from bench_fidelity import merged_runs
+
+    def run(scene, variant, seed, psnr):
+        return {"scene": scene, "variant": variant, "seed": seed, "metrics": {"blur_view": {"psnr": psnr}}}
+
+    a, b, bad = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "bad.json"
+    a.write_text(json.dumps({"runs": [run("lego", "oracle", 0, 1.0), run("lego", "blur+event", 0, 2.0)]}))
+    b.write_text(json.dumps({"runs": [run("lego", "oracle", 0, 9.0), run("ficus", "oracle", 1, 3.0)]}))
+    bad.write_text(json.dumps({"summary": {}}))
+    ap = argparse.ArgumentParser()
+    got = merged_runs([a, b], {("lego", "blur+event", 0)}, ap)
+    assert [(r["scene"], r["variant"], r["seed"], r["metrics"]["blur_view"]["psnr"]) for r in got] == \
+        [("lego", "oracle", 0, 1.0), ("ficus", "oracle", 1, 3.0)]
+    with pytest.raises(SystemExit):
+        merged_runs([bad], set(), ap)

@@ -139,6 +139,22 @@ def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_point
     return score({"train_seconds": time.perf_counter() - t, "code": code})
 
 
+def merged_runs(paths: list[Path], have: set, ap) -> list[dict]:
+    """The runs of earlier summary JSONs not in ``have`` ((scene, variant, seed) keys), first file first."""
+    out = []
+    for p in paths:
+        try:
+            extra = json.loads(Path(p).read_text())["runs"]
+            keys = [(r["scene"], r["variant"], r["seed"]) for r in extra]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            ap.error(f"--merge {p}: not a bench_fidelity summary ({e})")
+        for key, r in zip(keys, extra):
+            if key not in have:
+                have.add(key)
+                out.append(r)
+    return out
+
+
 def _run_job(job: dict) -> dict:
     """One run in a pool worker (a fresh process: torch and numba pinned to one thread there)."""
     import torch
@@ -290,6 +306,9 @@ def main(argv=None) -> int:
     ap.add_argument("--plot", type=Path, help="PSNR bar plot (default tools/results/bench_fidelity[_quick].png)")
     ap.add_argument("--lpips-weights", type=Path, help="LPIPS v0.1 weights file passed to evaluate (see ev3dgs eval "
                     "--help; default: none, no LPIPS)")
+    ap.add_argument("--merge", nargs="+", type=Path, default=[], metavar="EARLIER.json",
+                    help="add the runs of earlier summaries to the table and plot (a run of this invocation wins "
+                         "over one with the same scene, variant and seed; default: none)")
     ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
     if a.lpips_weights:
@@ -339,10 +358,18 @@ def main(argv=None) -> int:
                              "lpips_weights": a.lpips_weights and str(a.lpips_weights),
                              "out": str(a.cache / "runs" / paths[name].stem / f"{tag}_s{seed}")})
     runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]
+    this = len(runs)
+    runs += merged_runs(a.merge, {(r["scene"], r["variant"], r["seed"]) for r in runs}, ap)
+    for r in runs[this:]:   # merged variants join the table
+        variants.setdefault(r["variant"], VARIANTS.get(r["variant"], {}))
+    order = list(VARIANTS)  # table and plot in VARIANTS' order (an --event-weights variant after them)
+    variants = {k: variants[k] for k in sorted(variants, key=lambda k: order.index(k) if k in order else len(order))}
     summary = summarise(runs, variants)
+    scenes = list(dict.fromkeys([*scenes, *(r["scene"] for r in runs)]))
     result = {"settings": {"quick": a.quick, "scenes": scenes, "seeds": seeds, "iterations": iterations,
                            "init_points": a.init_points, "render": render, "dataset_seed": 0, "jobs": a.jobs,
-                           "variants": list(variants), "variant_overrides": variants, "code": code_hash()},
+                           "variants": list(variants), "variant_overrides": variants, "code": code_hash(),
+                           "merged": [str(p) for p in a.merge]},
               "summary": summary, "targets": targets(summary["average"]),
               "blurry_input": {r["scene"]: r["metrics"].get("blurry_input", {}).get("psnr") for r in runs},
               "runs": [{k: v for k, v in r.items() if k != "metrics"} |
