@@ -53,7 +53,9 @@ VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="
             # the EDI prior (--edi-prior W, W in units of the noise norm's default event weight 8/625), faded
             # out over the first half of the run; alone and with both options above
             "blur+event-edi": dict(event_norm="noise", edi_prior=8 / 625),
-            "blur+event-hdr-sh-edi": dict(event_norm="noise", hdr=True, sh_interval=33, edi_prior=8 / 625)}
+            "blur+event-hdr-sh-edi": dict(event_norm="noise", hdr=True, sh_interval=33, edi_prior=8 / 625),
+            # both options with per-pixel thresholds, for the 40 % mismatch row
+            "blur+event-hdr-sh-map": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True)}
 # variants that never read the events: one run per seed, on the events-free cell
 SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh")
 
@@ -218,7 +220,8 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
         for rel, col in zip(rels, ("C0", "C1", "C2", "C3", "C4")):
             for var, ls in (("blur+event", "-"), ("blur+event-count", ":"), ("blur+event-map", "-."),
                             ("blur+event-hdr-sh", (0, (5, 1, 1, 1))), ("blur+event-edi", (0, (1, 1))),
-                            ("blur+event-hdr-sh-edi", (0, (3, 1, 1, 1, 1, 1)))):
+                            ("blur+event-hdr-sh-edi", (0, (3, 1, 1, 1, 1, 1))),
+                            ("blur+event-hdr-sh-map", (0, (1, 2)))):
                 ys = [summary.get(cell_name(t, rel), {}).get(var, {}).get(view, [np.nan])[0] for t in thetas]
                 if np.isfinite(ys).any():
                     ax.plot(thetas, ys, linestyle=ls, color=col, marker="o", ms=3,
