@@ -111,9 +111,9 @@ def edi_prior_loss(log_l: torch.Tensor, counts: torch.Tensor, log_b: torch.Tenso
         change = expected_log_change(c, tp, tn, convention)
         target = edi_log_targets(log_b.to(log_l.dtype), change)
         var = edi_variance(change, c, tp, tn, rel_mismatch, noise_rate, times_s, spread)
-        # the targets lie below full scale, so a render above it is as wrong as one at it: clamping the
-        # intensity to [knee, 1] keeps every denominator at least floor > 0 (var can be 0: a pose that
-        # carries all the exposure's light is the blurry frame itself)
+        # g at most 1, the weight of an error at full scale: a render above it weighs no more than one at
+        # it, and every denominator stays at least floor > 0 (var can be 0: a pose that carries all the
+        # exposure's light is the blurry frame itself)
         g = log_l.detach().exp().clamp(min=knee, max=1.0) ** -2
         weight = mask.to(log_l.dtype) / (var + floor * g)
     r = log_l - target
