@@ -70,6 +70,9 @@ study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-edi blur+event-hdr-sh-edi --mismatch 0.1 \
 		--merge tools/results/study_event_term_hdr.json \
 		--json tools/results/study_event_term_edi.json --plot tools/results/study_event_term_edi.png
+	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-hdr-sh-map --mismatch 0.1 0.4 \
+		--merge tools/results/study_event_term_edi.json tools/results/study_event_term_map.json \
+		--json tools/results/study_event_term_hdr_map.json --plot tools/results/study_event_term_hdr_map.png
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
 # on 2 cores after study-event-term) and lowlight (frame noise), two seeds

@@ -19,7 +19,8 @@ record how close the fitted thresholds came to the ones the simulator drew (tool
 then, at 10 % mismatch, radiance above full scale (``--hdr``) and a faster SH schedule (``--sh-interval 33``):
 each alone at threshold 0.05 (tools/results/study_event_term_hdr05.json), both together with blur-only and the
 oracle on the same schedule at every threshold (tools/results/study_event_term_hdr.json); last, the EDI prior
-(``--edi-prior``) alone and with both options, at 10 % mismatch (tools/results/study_event_term_edi.json).
+(``--edi-prior``) alone and with both options, at 10 % mismatch (tools/results/study_event_term_edi.json); and
+both options with per-pixel thresholds at 10 % and 40 % (tools/results/study_event_term_hdr_map.json).
 
 Runs go two at a time by default (one per core, one thread each) and are cached by settings and trainer code
 in --cache (tools/bench/bench_fidelity.py's run_one), so an interrupted study resumes.
@@ -210,7 +211,7 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=False)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), sharey=False)
     for ax, view in zip(axes, ("blur_view", "novel_view")):
         for v, col, ls in (("blur-only", "k", "--"), ("oracle", "k", ":"), ("blur-only-hdr-sh", "C4", "--"),
                            ("oracle-sh", "C4", ":")):
@@ -221,7 +222,7 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
             for var, ls in (("blur+event", "-"), ("blur+event-count", ":"), ("blur+event-map", "-."),
                             ("blur+event-hdr-sh", (0, (5, 1, 1, 1))), ("blur+event-edi", (0, (1, 1))),
                             ("blur+event-hdr-sh-edi", (0, (3, 1, 1, 1, 1, 1))),
-                            ("blur+event-hdr-sh-map", (0, (1, 2)))):
+                            ("blur+event-hdr-sh-map", (0, (8, 2)))):
                 ys = [summary.get(cell_name(t, rel), {}).get(var, {}).get(view, [np.nan])[0] for t in thetas]
                 if np.isfinite(ys).any():
                     ax.plot(thetas, ys, linestyle=ls, color=col, marker="o", ms=3,
@@ -232,8 +233,8 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
         ax.set_xlabel("contrast threshold")
         ax.set_ylabel("PSNR (dB)")
         ax.set_title(view.replace("_", " "))
-    axes[0].legend(fontsize=6)
-    fig.tight_layout()
+    fig.legend(loc="center right", fontsize=6)   # beside the panels: the curves stay visible
+    fig.tight_layout(rect=(0, 0, 0.8, 1))
     fig.savefig(png, dpi=120)
 
 
