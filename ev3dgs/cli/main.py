@@ -290,7 +290,7 @@ def build_parser():
                    help="add the event double integral prior with weight W (per unit of chi-square, like "
                         "--event-weight under the noise norm): each sub-pose render is pulled towards the sharp "
                         "frame the blurry frame and the exposure's events give (EDI), weighted by that "
-                        "target's expected error, saturated pixels left out; noise norm only (default 0, off)")
+                        "target's expected error, saturated pixels left out; noise norm only (default %(default)s: off)")
     t.add_argument("--edi-anneal", type=finite_float, default=0.5, metavar="F",
                    help="the EDI prior's weight falls linearly to 0 at this fraction of --iterations "
                         "(default %(default)s)")
