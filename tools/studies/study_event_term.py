@@ -56,7 +56,10 @@ VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="
             "blur+event-edi": dict(event_norm="noise", edi_prior=8 / 625),
             "blur+event-hdr-sh-edi": dict(event_norm="noise", hdr=True, sh_interval=33, edi_prior=8 / 625),
             # both options with per-pixel thresholds, for the 40 % mismatch row
-            "blur+event-hdr-sh-map": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True)}
+            "blur+event-hdr-sh-map": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True),
+            # the same with 17 sub-poses per exposure (the rendered sub-frames' count) instead of 5
+            "blur+event-hdr-sh-map@17": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True,
+                                             subposes=17)}
 # variants that never read the events: one run per seed, on the events-free cell
 SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh")
 
