@@ -109,7 +109,7 @@ def test_training_improves_the_sharp_views(scene_path, tmp_path):
 
 
 @pytest.mark.parametrize("extra", [{}, {"threshold_map": True}, {"hdr": True},
-                                   {"edi_prior": 0.05, "edi_anneal": 1.0}])
+                                   {"edi_prior": 0.05, "edi_anneal": 1.0}, {"subposes": 9, "subpose_px": 0.5}])
 def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
     class Stop(Exception):
         pass
@@ -221,7 +221,8 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
 
 @pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"], ["--blur-space", "linear", "--learn-thresholds",
                                                                       "--event-pairs", "3", "--threshold-map", "--hdr",
-                                                                      "--sh-interval", "4", "--edi-prior", "0.02"]])
+                                                                      "--sh-interval", "4", "--edi-prior", "0.02",
+                                                                      "--subposes", "7", "--subpose-px", "0.5"]])
 def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
     run = tmp_path / "run"
     assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--init-points", "300",
@@ -233,6 +234,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     saved = json.loads((run / "config.json").read_text())
     assert saved["hdr"] == ("--hdr" in flags) and saved["sh_interval"] == (4 if "--sh-interval" in flags else 1000)
     assert saved["edi_prior"] == (0.02 if "--edi-prior" in flags else 0.0)
+    assert saved["subpose_px"] == (0.5 if "--subpose-px" in flags else 0.0)
     assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply")]) == 0
     assert len(load_ply(tmp_path / "m.ply")) > 0
     assert cli.main(["render", str(run), "--out", str(tmp_path / "frames"), "--frames", "3"]) == 0
@@ -247,6 +249,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     (["train", "SCENE", "--out", "X", "--sh-interval", "0"], "sh-interval"),
     (["train", "SCENE", "--out", "X", "--hdr", "--blur-space", "srgb"], "hdr needs the linear-light"),
     (["train", "SCENE", "--out", "X", "--edi-anneal", "0"], "edi-anneal"),
+    (["train", "SCENE", "--out", "X", "--subpose-px", "-1"], "subpose-px must be a number >= 0"),
     (["train", "SCENE", "--out", "X", "--edi-prior", "0.1", "--no-event-loss"], "edi-prior needs the event loss"),
     (["train", "SCENE", "--out", "X", "--device", "cuda"], "CUDA|cuda"),
     (["train", "SCENE", "--out", "X", "--resume"], "no checkpoint"),

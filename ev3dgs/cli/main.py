@@ -85,7 +85,8 @@ def _train(args) -> int:
     import os
 
     opts = dict(
-        scene=os.path.abspath(args.scene), iterations=args.iterations, subposes=args.subposes, event_weight=args.event_weight,
+        scene=os.path.abspath(args.scene), iterations=args.iterations, subposes=args.subposes,
+        subpose_px=args.subpose_px, event_weight=args.event_weight,
         event_norm=args.event_norm, event_mismatch=args.event_mismatch,
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
@@ -244,7 +245,14 @@ def build_parser():
                                                 "config.json, training.png go there); a folder that holds a run "
                                                 "already is refused unless --resume or --force")
     t.add_argument("--iterations", type=int, default=3000, help="optimisation steps (default %(default)s)")
-    t.add_argument("--subposes", type=int, default=5, help="renders across each exposure, b+1 (default %(default)s)")
+    t.add_argument("--subposes", type=int, default=5,
+                   help="renders across each exposure, b+1; with --subpose-px the most a view gets "
+                        "(default %(default)s)")
+    t.add_argument("--subpose-px", type=finite_float, default=0.0, metavar="P",
+                   help="give each view the fewest renders (2 to --subposes) that lie at most P pixels apart "
+                        "along its exposure's largest image motion (measured from the scene's poses and "
+                        "points or bounds), so views that move more get more sub-poses "
+                        "(default %(default)s: every view gets --subposes)")
     t.add_argument("--event-weight", type=finite_float, default=None,
                    help="omega, the weight of the event loss (default: the event norm's, "
                         f"{EVENT_WEIGHTS['noise']:g} for noise, 1/625 for count)")

@@ -34,6 +34,8 @@ class TrainConfig:
     scene: str
     iterations: int = 3000
     subposes: int = 5                 # b + 1 renders across each exposure
+    subpose_px: float = 0.0           # > 0: per view the fewest sub-poses (2 to subposes) this many pixels apart
+                                      # along its largest image motion (subposes.py); 0: subposes for every view
     event_weight: float | None = None  # omega; None = the event norm's default (EVENT_WEIGHTS)
     event_norm: str = "noise"         # "noise": residual over its expected error (losses.noise_event_loss);
                                       # "count": residual in events, / theta_mean (losses.pose_event_loss)
@@ -78,6 +80,8 @@ class TrainConfig:
     def __post_init__(self):
         check(self.iterations >= 1, "--iterations must be >= 1")
         check(1 <= self.subposes <= 64, "--subposes must be in [1, 64]")
+        check(isinstance(self.subpose_px, (int, float)) and 0 <= self.subpose_px < float("inf"),
+              "--subpose-px must be a number >= 0 (0: every view gets --subposes)")
         check(self.event_weight is None or self.event_weight >= 0, "--event-weight must be >= 0")
         check(self.event_norm in EVENT_WEIGHTS, f"--event-norm must be one of {', '.join(EVENT_WEIGHTS)}")
         check(self.event_mismatch is None or 0 <= self.event_mismatch <= 1, "--event-mismatch must be in [0, 1]")

@@ -13,6 +13,7 @@ from ..errors import InputError
 from ..geometry import interpolate_pose
 from ..logmap import DEFAULT_LOG_KNEE
 from .events import bin_polarity_events, sub_pose_times
+from .subposes import exposure_motion, motion_points, subpose_counts
 
 
 @dataclass
@@ -42,10 +43,17 @@ class TrainData:
     sub_c2w: np.ndarray | None = None  # (N,B,4,4) float64 camera-to-world of the sub-poses (pose refinement)
     mismatch_sigma: float | None = None   # absolute per-pixel threshold spread the scene was simulated with
     noise_rate_hz: float | None = None    # background-activity events per pixel and second (leak + shot noise)
+    n_sub: np.ndarray | None = None       # (N,) sub-poses of each view (--subpose-px); None: all B of them.
+    # A view with k < B uses [:k] of viewmats, sub_times and sub_c2w and [:k-1] of bins (the rest is padding)
+    motion_px: np.ndarray | None = None   # (N,) the image motion --subpose-px measured per exposure
 
     @property
     def n_views(self) -> int:
         return self.images.shape[0]
+
+    def sub_count(self, v: int) -> int:
+        """How many of view v's sub-poses it uses (all B unless --subpose-px chose fewer)."""
+        return int(self.viewmats.shape[1] if self.n_sub is None else self.n_sub[v])
 
     @property
     def scene_scale(self) -> float:
@@ -74,10 +82,32 @@ def resolve_domains(transfer: str, blur_space: str = "auto", event_domain: str =
     return blur, ev
 
 
+def _view_times(exposure: np.ndarray, n_sub: np.ndarray) -> np.ndarray:
+    """(N, max n_sub) int64: view v's n_sub[v] sub-pose times spread over its exposure, then its end time
+    repeated (padding no step reads)."""
+    exposure = np.asarray(exposure, dtype=np.int64)
+    times = np.repeat(exposure[:, 1:], int(n_sub.max()), axis=1)
+    for k in np.unique(n_sub):
+        rows = n_sub == k
+        times[rows, :k] = sub_pose_times(exposure[rows], int(k))
+    return times
+
+
+def _view_bins(ev, times: np.ndarray, n_sub: np.ndarray, height: int, width: int) -> np.ndarray:
+    """ON/OFF counts between each view's own sub-poses, (N, max n_sub - 1, 2, H, W), zero in the padding."""
+    out = np.zeros((len(times), times.shape[1] - 1, 2, height, width), dtype=np.float32)
+    for k in np.unique(n_sub):
+        rows = np.flatnonzero(n_sub == k)
+        out[rows, :k - 1] = bin_polarity_events(ev.t, ev.x, ev.y, ev.p, times[rows, :k], height, width)
+    return out
+
+
 def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.float32, blur_space: str = "auto",
-                    event_domain: str = "auto", oracle: bool = False) -> TrainData:
+                    event_domain: str = "auto", oracle: bool = False, subpose_px: float = 0.0) -> TrainData:
     """``oracle``: the sharp frames (/train/sharp) at their sharp poses as the training images, one pose per
-    view and no events (the sharp-oracle upper bound of the evaluation protocol)."""
+    view and no events (the sharp-oracle upper bound of the evaluation protocol). ``subpose_px`` > 0: each
+    view gets the fewest sub-poses (2 to ``subposes``) spaced at most that many pixels along its exposure's
+    largest image motion (subposes.py); 0: every view gets ``subposes``."""
     sc = schema.read(path, require_complete=True)
     tr = sc.train
     if oracle and (tr.sharp is None or tr.sharp_poses is None):
@@ -88,14 +118,24 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
     if subposes < 1:
         raise InputError(f"--subposes must be >= 1, got {subposes}")
     N, H, W = len(tr), sc.camera.height, sc.camera.width
-    times = sub_pose_times(np.asarray(tr.exposure), subposes)
+    n_sub = motion = None
+    if subpose_px > 0 and subposes > 1 and not oracle:
+        xyz = None if sc.points is None else np.asarray(sc.points.xyz)
+        motion = exposure_motion(tr.poses, tr.pose_t, tr.exposure, sc.camera.K, W, H,
+                                 motion_points(xyz, sc.bounds))
+        n_sub = subpose_counts(motion, subpose_px, subposes)
+        times = _view_times(tr.exposure, n_sub)
+    else:
+        times = sub_pose_times(np.asarray(tr.exposure), subposes)
     sub = np.stack([[interpolate_pose(tr.poses[v], tr.pose_t[v], t) for t in times[v]] for v in range(N)])
     mid_t = np.asarray(tr.exposure).mean(axis=1)
     mid = np.stack([interpolate_pose(tr.poses[v], tr.pose_t[v], mid_t[v]) for v in range(N)])
     bins = None
     if len(sc.events) and subposes > 1 and not oracle:
         ev = sc.events.load()
-        bins = torch.from_numpy(bin_polarity_events(ev.t, ev.x, ev.y, ev.p, times, H, W)).to(device)
+        binned = (bin_polarity_events(ev.t, ev.x, ev.y, ev.p, times, H, W) if n_sub is None
+                  else _view_bins(ev, times, n_sub, H, W))
+        bins = torch.from_numpy(binned).to(device)
     if oracle:  # one pose per view, the one the sharp frame was taken at
         sub = np.asarray(tr.sharp_poses)[:, None]
         mid = np.asarray(tr.sharp_poses)
@@ -118,7 +158,7 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
         transfer=transfer,
         count_convention=sc.sensor.count_convention or schema.default_count_convention(sc.source, sc.config),
         raw_matrix=sc.sensor.camera_raw_matrix, blur_space=blur, event_transfer=ev_transfer, sub_c2w=sub,
-        **sensor_noise(sc.config),
+        n_sub=n_sub, motion_px=motion, **sensor_noise(sc.config),
     )
 
 

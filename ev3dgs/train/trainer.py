@@ -103,7 +103,12 @@ class Trainer:
             torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
         self.data = load_train_data(cfg.scene, 1 if cfg.naive or cfg.oracle else cfg.subposes, device=self.device,
-                                    blur_space=cfg.blur_space, event_domain=cfg.event_domain, oracle=cfg.oracle)
+                                    blur_space=cfg.blur_space, event_domain=cfg.event_domain, oracle=cfg.oracle,
+                                    subpose_px=cfg.subpose_px)
+        if self.data.n_sub is not None and not quiet:
+            n, mo = self.data.n_sub, self.data.motion_px
+            print(f"--subpose-px {cfg.subpose_px:g}: {n.min()}-{n.max()} sub-poses per view (mean {n.mean():.1f}) "
+                  f"for {mo.min():.1f}-{mo.max():.1f} px of motion per exposure", file=sys.stderr)
         if cfg.hdr and self.data.blur_space != "linear":
             raise ConfigError("--hdr needs the linear-light blur model (--blur-space linear, or a scene whose "
                               "/train transfer is srgb)")
@@ -199,9 +204,10 @@ class Trainer:
         if self.step > 0 and self.step % cfg.sh_interval == 0:
             self.model.active_sh_degree = min(self.model.sh_degree, self.model.active_sh_degree + 1)
         v = self._next_view()
-        poses = data.mid_viewmats[v:v + 1] if cfg.naive else data.viewmats[v]
+        k = data.sub_count(v)  # --subpose-px: this view's own count; the rest of its rows is padding
+        poses = data.mid_viewmats[v:v + 1] if cfg.naive else data.viewmats[v][:k]
         if self.pose_refiner is not None:  # the view's corrected sub-poses, differentiable in its corrections
-            poses = self.pose_refiner.viewmats(v, poses.dtype)
+            poses = self.pose_refiner.viewmats(v, poses.dtype)[:k]
         # the b+1 sub-poses in one batched call (one projection, one binning, one kernel over (camera, tile));
         # the densification statistics still count every camera's render separately (info["n_cameras"])
         if self.cfg.backend == "cpu" or (self.cfg.backend == "auto" and self.device.type == "cpu"):
@@ -227,15 +233,16 @@ class Trainer:
         loss = l_blur
         l_event = l_edi = torch.zeros((), device=self.device)
         if self.use_events:
-            pairs = pair_list(len(poses), cfg.event_pairs or "all", self.pair_generator)
+            n_pairs = k * (k - 1) // 2  # --event-pairs N: N random pairs, all of them where a view has fewer
+            pairs = pair_list(k, cfg.event_pairs if 0 < cfg.event_pairs <= n_pairs else "all", self.pair_generator)
             log_l = log_intensity(stack, data.color_filter, data.log_knee, data.event_transfer, data.raw_matrix,
                                   linear=lin)
-            counts = pose_counts(data.bins[v])
+            counts = pose_counts(data.bins[v][:k - 1])
             tp, tn = self.thresholds["pos"].exp(), self.thresholds["neg"].exp()
             if cfg.event_norm == "count":
                 l_event = pose_event_loss(log_l, counts, pairs, tp, tn, data.count_convention)
             else:
-                t = data.sub_times[v].astype(np.float64) * 1e-6
+                t = data.sub_times[v][:k].astype(np.float64) * 1e-6
                 noise = (torch.tensor([self.noise_rate_hz * abs(t[b] - t[a]) for a, b in pairs],
                                       dtype=log_l.dtype, device=log_l.device) if self.noise_rate_hz > 0 else None)
                 tmap = self.threshold_map
@@ -245,7 +252,7 @@ class Trainer:
                                                      None if tmap is None else tmap.spread)
                 self.event_floor = update_floor(self.event_floor, estimate)
                 if tmap is not None:  # this view's equations at the current render; the map solved again
-                    tmap.update(v, data.bins[v], tp, tn, self.event_floor, log_l, data.log_knee)
+                    tmap.update(v, data.bins[v][:k - 1], tp, tn, self.event_floor, log_l, data.log_knee)
                 fade = anneal_factor(self.step, cfg.iterations, cfg.edi_anneal) if self.edi is not None else 0.0
                 if fade > 0:  # --edi-prior: each sub-pose's EDI target, weighted by its expected error
                     l_edi = edi_prior_loss(log_l, counts, self.edi[0][v], self.edi[1][v], tpm, tnm,
@@ -272,7 +279,8 @@ class Trainer:
             p = psnr(avg.detach().clamp(0, 1), target)
         return {"step": self.step, "view": v, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
                 "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info,
-                **({"edi": l_edi.item()} if self.edi is not None else {})}
+                **({"edi": l_edi.item()} if self.edi is not None else {}),
+                **({"subposes": k} if data.n_sub is not None else {})}
 
     def trained_parameters(self) -> list[torch.Tensor]:
         """Every tensor a step updates: the Gaussians, the learned thresholds and whatever any optimizer of

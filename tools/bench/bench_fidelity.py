@@ -51,7 +51,9 @@ VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blu
             "blur+event-hdr": dict(hdr=True), "blur+event-sh": dict(sh_interval=33),
             "blur+event-hdr-sh": dict(hdr=True, sh_interval=33), "oracle-sh": dict(oracle=True, sh_interval=33),
             "blur+event-edi": dict(edi_prior=8 / 625), "blur+event-hdr-sh-edi": dict(hdr=True, sh_interval=33,
-                                                                                    edi_prior=8 / 625)}
+                                                                                    edi_prior=8 / 625),
+            # each view's sub-poses from its motion, at most 2 px apart, up to 17 (--subpose-px 2)
+            "blur+event-px2": dict(subposes=17, subpose_px=2.0)}
 DEFAULT_VARIANTS = ("naive", "blur-only", "blur+event", "oracle")
 # The full table is sized so that a 2-core CPU finishes it in about an hour (48 runs, two at a time); the
 # issue's example size (128x96, 3000 steps) is ~4x that: --size 128x96 --steps 3000.

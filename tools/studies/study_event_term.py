@@ -59,7 +59,11 @@ VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="
             "blur+event-hdr-sh-map": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True),
             # the same with 17 sub-poses per exposure (the rendered sub-frames' count) instead of 5
             "blur+event-hdr-sh-map@17": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True,
-                                             subposes=17)}
+                                             subposes=17),
+            # each view's sub-poses from its motion: at most 2 px apart, up to 17 (--subpose-px 2)
+            "blur+event-px2": dict(event_norm="noise", subposes=17, subpose_px=2.0),
+            "blur+event-hdr-sh-map-px2": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True,
+                                              subposes=17, subpose_px=2.0)}
 # variants that never read the events: one run per seed, on the events-free cell
 SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh")
 
@@ -157,14 +161,14 @@ def blur_fit(run: Path) -> dict:
     from ev3dgs.train.losses import blur_average, srgb_to_linear_hdr_torch, srgb_to_linear_torch
 
     cfg, m = load_run(run)
-    data = load_train_data(cfg.scene, cfg.subposes)
+    data = load_train_data(cfg.scene, cfg.subposes, subpose_px=cfg.subpose_px)
     decode = srgb_to_linear_hdr_torch if cfg.hdr else srgb_to_linear_torch
     sq = sat = 0.0
     brightest = 0.0
     with torch.no_grad():
         for v in range(data.n_views):
-            stack, _, _ = rasterization(m.means, m.quats_normalised, m.scales, m.opacities, m.sh, data.viewmats[v],
-                                        data.K, data.width, data.height, sh_degree=m.active_sh_degree,
+            poses = data.viewmats[v][:data.sub_count(v)]
+            stack, _, _ = rasterization(m.means, m.quats_normalised, m.scales, m.opacities, m.sh, poses, data.K, data.width, data.height, sh_degree=m.active_sh_degree,
                                         background=data.background, backend="cpu")
             lin = decode(stack)
             err = (blur_average(stack, data.blur_space, linear=lin).clamp(0, 1) - data.images[v].to(stack.dtype)) ** 2
