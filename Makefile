@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml setup.py ev3dgs/io/aedat4/_fast.c
 	touch $(STAMP)
 
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=15
 
 test-slow: setup
 	# the browser test (tests/test_view_browser.py) drives the system's Chromium; it skips when there is none
@@ -73,6 +73,11 @@ study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-hdr-sh-map --mismatch 0.1 0.4 \
 		--merge tools/results/study_event_term_edi.json tools/results/study_event_term_map.json \
 		--json tools/results/study_event_term_hdr_map.json --plot tools/results/study_event_term_hdr_map.png
+	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-px2 blur+event-hdr-sh-map-px2 \
+		--thresholds 0.05 --mismatch 0.1 --json tools/results/study_event_term_px2.json
+	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-hdr-sh-map@17 --mismatch 0.1 \
+		--merge tools/results/study_event_term_px2.json tools/results/study_event_term_hdr_map.json \
+		--json tools/results/study_event_term_subposes.json --plot tools/results/study_event_term_subposes.png
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
 # on 2 cores after study-event-term) and lowlight (frame noise), two seeds

@@ -20,7 +20,10 @@ then, at 10 % mismatch, radiance above full scale (``--hdr``) and a faster SH sc
 each alone at threshold 0.05 (tools/results/study_event_term_hdr05.json), both together with blur-only and the
 oracle on the same schedule at every threshold (tools/results/study_event_term_hdr.json); last, the EDI prior
 (``--edi-prior``) alone and with both options, at 10 % mismatch (tools/results/study_event_term_edi.json); and
-both options with per-pixel thresholds at 10 % and 40 % (tools/results/study_event_term_hdr_map.json).
+both options with per-pixel thresholds at 10 % and 40 % (tools/results/study_event_term_hdr_map.json); and
+the sub-poses: each view's count from its motion (``--subpose-px 2``, up to 17) with and without all three at
+threshold 0.05 (tools/results/study_event_term_px2.json), all three with 17 sub-poses at every threshold of the
+10 % row (tools/results/study_event_term_subposes.json).
 
 Runs go two at a time by default (one per core, one thread each) and are cached by settings and trainer code
 in --cache (tools/bench/bench_fidelity.py's run_one), so an interrupted study resumes.
