@@ -77,7 +77,9 @@ study-event-term: setup
 		--thresholds 0.05 --mismatch 0.1 --json tools/results/study_event_term_px2.json
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-hdr-sh-map@17 --mismatch 0.1 \
 		--merge tools/results/study_event_term_px2.json tools/results/study_event_term_hdr_map.json \
-		--json tools/results/study_event_term_subposes.json --plot tools/results/study_event_term_subposes.png
+		--json tools/results/study_event_term_subposes.json --plot tools/results/study_event_term_subposes.png \
+		--plot-variants blur+event blur+event-px2 blur+event-hdr-sh-map blur+event-hdr-sh-map-px2 \
+		blur+event-hdr-sh-map@17
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
 # on 2 cores after study-event-term) and lowlight (frame noise), two seeds

@@ -189,3 +189,20 @@ def test_bench_merge_adds_earlier_runs_once_and_refuses_a_foreign_file(tmp_path)
         [("lego", "oracle", 0, 1.0), ("ficus", "oracle", 1, 3.0)]
     with pytest.raises(SystemExit):
         merged_runs([bad], set(), ap)
+
+
+def test_event_term_plot_draws_every_variant_or_the_ones_asked_for(tmp_path):
+    """study_event_term.plot: a variant without a fixed style (here a sub-pose variant) gets one and is
+    drawn; --plot-variants restricts the event variants, not the sensor-free lines."""
+    import study_event_term as se
+
+    summary = {"sensor_free": {"oracle": {"blur_view": [31.0, 0.0, 2], "novel_view": [28.0, 0.0, 2]}},
+               "t0.05_m0.1": {"blur+event": {"blur_view": [27.0, 0.1, 2], "novel_view": [26.0, 0.1, 2]},
+                              "blur+event-px2": {"blur_view": [28.0, 0.1, 2], "novel_view": [26.5, 0.1, 2]}},
+               "t0.1_m0.1": {"blur+event": {"blur_view": [27.1, 0.1, 2], "novel_view": [26.1, 0.1, 2]}}}
+    png = tmp_path / "p.png"
+    labels = se.plot(summary, [0.05, 0.1], [0.1], png)
+    assert labels == ["oracle", "blur+event, mismatch 0.1", "blur+event-px2, mismatch 0.1"]
+    assert png.stat().st_size > 1000
+    assert se.plot(summary, [0.05, 0.1], [0.1], png, ["blur+event-px2", "absent"]) == [
+        "oracle", "blur+event-px2, mismatch 0.1"]

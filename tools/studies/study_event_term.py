@@ -215,7 +215,17 @@ def summarise(runs: list[dict]) -> dict:
     return out
 
 
-def plot(summary: dict, thetas, rels, png: Path) -> None:
+# line style per event variant in the plot; variants without one take the next of EXTRA_STYLES
+STYLES = {"blur+event": "-", "blur+event-count": ":", "blur+event-map": "-.",
+          "blur+event-hdr-sh": (0, (5, 1, 1, 1)), "blur+event-edi": (0, (1, 1)),
+          "blur+event-hdr-sh-edi": (0, (3, 1, 1, 1, 1, 1)), "blur+event-hdr-sh-map": (0, (8, 2))}
+EXTRA_STYLES = ("--", (0, (2, 2)), (0, (6, 1, 1, 1, 1, 1, 1, 1)), (0, (4, 4)), (0, (1, 3)))
+
+
+def plot(summary: dict, thetas, rels, png: Path, variants=None) -> list[str]:
+    """PSNR against threshold, one line per (event variant, mismatch) and the sensor-free variants as
+    horizontal lines; ``variants``: only these event variants (default: every one in the summary). Returns
+    the legend's labels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -228,11 +238,12 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
             if v in summary.get("sensor_free", {}):
                 ax.axhline(summary["sensor_free"][v][view][0], color=col, ls=ls, lw=1,
                            label=v if view == "blur_view" else None)
+        present = {v for c, table in summary.items() if c != "sensor_free" for v in table}
+        shown = [v for v in (variants or sorted(present)) if v in present]
+        extra = iter(EXTRA_STYLES * len(shown))
+        styles = {v: STYLES.get(v) or next(extra) for v in shown}
         for rel, col in zip(rels, ("C0", "C1", "C2", "C3", "C4")):
-            for var, ls in (("blur+event", "-"), ("blur+event-count", ":"), ("blur+event-map", "-."),
-                            ("blur+event-hdr-sh", (0, (5, 1, 1, 1))), ("blur+event-edi", (0, (1, 1))),
-                            ("blur+event-hdr-sh-edi", (0, (3, 1, 1, 1, 1, 1))),
-                            ("blur+event-hdr-sh-map", (0, (8, 2)))):
+            for var, ls in styles.items():
                 ys = [summary.get(cell_name(t, rel), {}).get(var, {}).get(view, [np.nan])[0] for t in thetas]
                 if np.isfinite(ys).any():
                     ax.plot(thetas, ys, linestyle=ls, color=col, marker="o", ms=3,
@@ -246,6 +257,9 @@ def plot(summary: dict, thetas, rels, png: Path) -> None:
     fig.legend(loc="center right", fontsize=6)   # beside the panels: the curves stay visible
     fig.tight_layout(rect=(0, 0, 0.8, 1))
     fig.savefig(png, dpi=120)
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    plt.close(fig)
+    return labels
 
 
 def main(argv=None) -> int:
@@ -269,6 +283,8 @@ def main(argv=None) -> int:
     ap.add_argument("--merge", nargs="+", default=[],
                     help="earlier JSON outputs of this study whose runs join the summary and the plot (e.g. the "
                          "count norm on fewer seeds)")
+    ap.add_argument("--plot-variants", nargs="+", metavar="VARIANT",
+                    help="event variants the plot draws (default: all in the summary, merged ones included)")
     ap.add_argument("--blur-fit", action="store_true",
                     help="also score each run's model through its own blur model against the training frames "
                          "(blur_fit in the JSON; about 10 s per run)")
@@ -321,7 +337,7 @@ def main(argv=None) -> int:
     if a.plot:
         cells = [c.split("_m") for c in summary if c != "sensor_free"]   # this run's cells and the merged ones
         plot(summary, sorted({float(t[1:]) for t, _ in cells} | set(a.thresholds)),
-             sorted({float(r) for _, r in cells} | set(a.mismatch)), Path(a.plot))
+             sorted({float(r) for _, r in cells} | set(a.mismatch)), Path(a.plot), a.plot_variants)
     return 0
 
 
