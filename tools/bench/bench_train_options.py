@@ -4,7 +4,7 @@
 count from its motion (``--subpose-px 2``, up to 17), one thread.
 The variants' steps are interleaved round by round, so a busy machine slows them alike; the result is each
 variant's median ms per step and its ratio to the default's, and the mean (with ``--subpose-px`` a step's cost
-depends on its view: the mean over whole cycles of the views is what a run pays; every variant visits the
+depends on its view: the mean over many visits of every view is what a run pays; every variant visits the
 views in the same order). Densification is off so every variant renders
 the same number of Gaussians. JSON + PNG.
 
@@ -88,8 +88,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", required=True, help="a scene file with events (e.g. a make study-event-term cell)")
     ap.add_argument("--rounds", type=int, default=48,
-                    help="timed steps per variant; a multiple of the scene's views gives each the same share "
-                         "(default %(default)s)")
+                    help="timed steps per variant (default %(default)s)")
     ap.add_argument("--init-points", type=int, default=5000, help="Gaussians (default %(default)s)")
     ap.add_argument("--json", type=Path, default=ROOT / "tools/results/bench_train_options.json")
     ap.add_argument("--plot", type=Path, default=ROOT / "tools/results/bench_train_options.png")

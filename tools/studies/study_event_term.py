@@ -171,7 +171,8 @@ def blur_fit(run: Path) -> dict:
     with torch.no_grad():
         for v in range(data.n_views):
             poses = data.viewmats[v][:data.sub_count(v)]
-            stack, _, _ = rasterization(m.means, m.quats_normalised, m.scales, m.opacities, m.sh, poses, data.K, data.width, data.height, sh_degree=m.active_sh_degree,
+            stack, _, _ = rasterization(m.means, m.quats_normalised, m.scales, m.opacities, m.sh, poses, data.K,
+                                        data.width, data.height, sh_degree=m.active_sh_degree,
                                         background=data.background, backend="cpu")
             lin = decode(stack)
             err = (blur_average(stack, data.blur_space, linear=lin).clamp(0, 1) - data.images[v].to(stack.dtype)) ** 2
