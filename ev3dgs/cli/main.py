@@ -265,8 +265,8 @@ def build_parser():
                    help="pixel-to-pixel threshold spread relative to the threshold, for --event-norm noise "
                         "(default: the scene's simulated value, or 0.1 for recordings)")
     t.add_argument("--event-pairs", type=int, default=0,
-                   help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs "
-                        "(default %(default)s)")
+                   help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs; a view "
+                        "with fewer pairs (--subpose-px) uses all of them (default %(default)s)")
     t.add_argument("--naive", action="store_true",
                    help="ablation: plain 3DGS on the blurry frame at the mid pose (default: off)")
     t.add_argument("--no-event-loss", action="store_true",
