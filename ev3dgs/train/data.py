@@ -84,7 +84,7 @@ def resolve_domains(transfer: str, blur_space: str = "auto", event_domain: str =
 
 def _view_times(exposure: np.ndarray, n_sub: np.ndarray) -> np.ndarray:
     """(N, max n_sub) int64: view v's n_sub[v] sub-pose times spread over its exposure, then its end time
-    repeated (padding no step reads)."""
+    repeated (padding: a step slices each view to its own count)."""
     exposure = np.asarray(exposure, dtype=np.int64)
     times = np.repeat(exposure[:, 1:], int(n_sub.max()), axis=1)
     for k in np.unique(n_sub):

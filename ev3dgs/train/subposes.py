@@ -35,7 +35,11 @@ def motion_points(xyz, bounds) -> np.ndarray:
 
 
 def _pixels(K: np.ndarray, c2w: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates (P, 2) and depths (P,) of world points X in a rigid camera-to-world pose."""
+    """Pixel coordinates (P, 2) and depths (P,) of world points X in a rigid camera-to-world pose: what
+    ``geometry.project`` gives (to rounding), with the rigid inverse R^T (X - c) in place of its 4x4 LAPACK
+    inverse, which this loop calls about 65 times per view (with two training runs on the same two cores
+    the inverses took 5 s of a 5.3 s measurement for 12 views, 0.4 s without them), and points at or behind
+    the camera divided by 1 instead of their depth (the caller drops them)."""
     R, c = c2w[:3, :3], c2w[:3, 3]
     pc = (X - c) @ R  # R^T (X - c), the camera-frame points
     h = pc @ K.T
