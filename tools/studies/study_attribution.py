@@ -6,6 +6,7 @@ trained under variants that each remove one cause of error, on the same frames, 
 * ``info-oracle``: plain 3DGS on all 17 sharp sub-frames of every exposure at their own poses (the most any
   deblurring could recover from these exposures);
 * ``oracle``: plain 3DGS on the sharp mid-exposure frame of each view (the evaluation's usual upper bound);
+* ``info-oracle-sh``, ``oracle-sh``: both with ``--sh-interval 33``, the upper bounds of a trainer run with it;
 * ``blur-ideal@17``: blur-only with 17 sub-poses (the rendered sub-frames' own poses) against the blurry frame the
   trainer's blur model would make from the sharp sub-frames (their sRGB decoded, averaged in linear light,
   encoded): no blur-model mismatch, no sub-pose discretisation, no frame noise;
@@ -53,6 +54,8 @@ SUBFRAMES = 17
 # "ideal", TrainConfig overrides, step multiplier, first seed only)
 VARIANTS = {
     "info-oracle": ("info", dict(oracle=True), 1, False),
+    "info-oracle-sh": ("info", dict(oracle=True, sh_interval=33), 1, False),
+    "oracle-sh": ("free", dict(oracle=True, sh_interval=33), 1, False),
     "oracle": ("free", dict(oracle=True), 1, False),
     "oracle-noisy": ("noisy", dict(oracle=True), 1, False),
     "blur-ideal@17": ("ideal", dict(event_loss=False, subposes=SUBFRAMES), 1, False),
@@ -71,6 +74,7 @@ VARIANTS = {
 # the cause helps)
 STEPS = [
     ("information: one sharp frame per view instead of 17", "info-oracle", "oracle"),
+    ("the same, both oracles with --sh-interval 33", "info-oracle-sh", "oracle-sh"),
     ("one blurry frame, ideal blur model, 17 sub-poses", "oracle", "blur-ideal@17"),
     ("frame noise in the sharp frames (oracle)", "oracle", "oracle-noisy"),
     ("blur model (ISP, 8-bit) against the ideal one", "blur-ideal@17", "blur-clean@17"),
