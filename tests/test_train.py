@@ -109,7 +109,8 @@ def test_training_improves_the_sharp_views(scene_path, tmp_path):
 
 
 @pytest.mark.parametrize("extra", [{}, {"threshold_map": True}, {"hdr": True},
-                                   {"edi_prior": 0.05, "edi_anneal": 1.0}, {"subposes": 9, "subpose_px": 0.5}])
+                                   {"edi_prior": 0.05, "edi_anneal": 1.0}, {"subposes": 9, "subpose_px": 0.5},
+                                   {"learn_response": True, "hdr": True}])
 def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
     class Stop(Exception):
         pass
@@ -133,6 +134,11 @@ def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
         saved = torch.load(tmp_path / "a" / "model.pt", weights_only=False)["threshold_map"]
         assert saved.shape == (2, H, W) and torch.equal(saved, full.threshold_map.multiplier)
         assert not torch.equal(saved, torch.ones_like(saved))    # the events moved it
+    if "learn_response" in extra:
+        assert torch.equal(full.response.logits, resumed.response.logits)
+        assert not torch.equal(full.response.logits, torch.zeros_like(full.response.logits))  # it was learned
+        table = json.loads((tmp_path / "a" / "response.json").read_text())
+        assert table["decoded_as"] == [float(v) for v in full.response.values().detach().double()]
 
 
 def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_path, tmp_path):
@@ -171,6 +177,25 @@ def test_hdr_needs_the_linear_light_blur_model(scene_path, tmp_path):
     schema.write(sc, tmp_path / "display.h5")
     with pytest.raises(ConfigError, match="--hdr needs the linear-light blur model"):
         Trainer(cfg(str(tmp_path / "display.h5"), hdr=True), tmp_path / "run", quiet=True)
+
+
+def test_learn_response_is_refused_where_the_frames_are_not_decoded_with_srgb(scene_path, tmp_path):
+    from ev3dgs.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--learn-response needs the linear-light blur model"):
+        cfg(scene_path, learn_response=True, blur_space="srgb")
+    with pytest.raises(ConfigError, match="--learn-response needs the blur model"):
+        cfg(scene_path, learn_response=True, oracle=True)
+    sc = schema.read(scene_path)
+    sc.train.transfer = "display"
+    schema.write(sc, tmp_path / "display.h5")
+    with pytest.raises(ConfigError, match="--learn-response needs a scene whose frames are decoded with sRGB"):
+        Trainer(cfg(str(tmp_path / "display.h5"), learn_response=True), tmp_path / "run", quiet=True)
+    # off, a run leaves no curve behind, not even an older run's
+    (tmp_path / "r2").mkdir()
+    (tmp_path / "r2" / "response.json").write_text("{}")
+    Trainer(cfg(scene_path, iterations=2), tmp_path / "r2", quiet=True).fit()
+    assert not (tmp_path / "r2" / "response.json").exists()
 
 
 def test_edi_prior_moves_the_fit_while_it_fades_and_is_refused_where_it_has_no_meaning(scene_path, tmp_path):
@@ -222,7 +247,8 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
 @pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"], ["--blur-space", "linear", "--learn-thresholds",
                                                                       "--event-pairs", "3", "--threshold-map", "--hdr",
                                                                       "--sh-interval", "4", "--edi-prior", "0.02",
-                                                                      "--subposes", "7", "--subpose-px", "0.5"]])
+                                                                      "--subposes", "7", "--subpose-px", "0.5",
+                                                                      "--learn-response"]])
 def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
     run = tmp_path / "run"
     assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--init-points", "300",
@@ -235,6 +261,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     assert saved["hdr"] == ("--hdr" in flags) and saved["sh_interval"] == (4 if "--sh-interval" in flags else 1000)
     assert saved["edi_prior"] == (0.02 if "--edi-prior" in flags else 0.0)
     assert saved["subpose_px"] == (0.5 if "--subpose-px" in flags else 0.0)
+    assert saved["learn_response"] == ("--learn-response" in flags)
     assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply")]) == 0
     assert len(load_ply(tmp_path / "m.ply")) > 0
     assert cli.main(["render", str(run), "--out", str(tmp_path / "frames"), "--frames", "3"]) == 0
@@ -249,6 +276,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     (["train", "SCENE", "--out", "X", "--sh-interval", "0"], "sh-interval"),
     (["train", "SCENE", "--out", "X", "--hdr", "--blur-space", "srgb"], "hdr needs the linear-light"),
     (["train", "SCENE", "--out", "X", "--edi-anneal", "0"], "edi-anneal"),
+    (["train", "SCENE", "--out", "X", "--learn-response", "--naive"], "learn-response needs the blur model"),
     (["train", "SCENE", "--out", "X", "--subpose-px", "-1"], "subpose-px must be a number >= 0"),
     (["train", "SCENE", "--out", "X", "--edi-prior", "0.1", "--no-event-loss"], "edi-prior needs the event loss"),
     (["train", "SCENE", "--out", "X", "--device", "cuda"], "CUDA|cuda"),

@@ -91,6 +91,7 @@ def _train(args) -> int:
         event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
         learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, hdr=args.hdr,
+        learn_response=args.learn_response,
         edi_prior=args.edi_prior, edi_anneal=args.edi_anneal, sh_degree=args.sh_degree, sh_interval=args.sh_interval,
         init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
         device=args.device, threads=args.threads, backend=args.backend,
@@ -294,6 +295,11 @@ def build_parser():
                         "renders above 1 decode to up to 10^4 x full scale, the blurry frame is modelled as "
                         "the exposure's integral clipped by the sensor, and the sharp renders clip at 1; "
                         "linear-light blur model only (default: off)")
+    t.add_argument("--learn-response", action="store_true",
+                   help="learn the camera's response (a monotone curve before the sRGB decode, 16 segments, "
+                        "starting at plain sRGB) from how the blurry frames and the events agree: for frames "
+                        "with a tone curve the scene does not declare; linear-light blur model with sRGB "
+                        "frames only; the curve is written to RUN/response.json (default: off)")
     t.add_argument("--edi-prior", type=finite_float, default=0.0, metavar="W",
                    help="add the event double integral prior with weight W (per unit of chi-square, like "
                         "--event-weight under the noise norm): each sub-pose render is pulled towards the sharp "

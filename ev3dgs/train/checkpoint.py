@@ -41,6 +41,8 @@ def save_checkpoint(path: Path, trainer) -> None:
         "event_floor": getattr(trainer, "event_floor", None),
         "threshold_map": (None if getattr(trainer, "threshold_map", None) is None
                           else trainer.threshold_map.state_dict()),
+        "response": (None if getattr(trainer, "response", None) is None
+                     else {"curve": trainer.response.state_dict(), "opt": trainer.response_opt.state_dict()}),
     }
     from ..outputs import atomic_path
 
@@ -121,6 +123,11 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
         if payload.get("threshold_map") is None:
             raise InputError(f"{path}: the checkpoint has no threshold map to continue --threshold-map from")
         trainer.threshold_map.load_state_dict(payload["threshold_map"])
+    if getattr(trainer, "response", None) is not None:
+        if payload.get("response") is None:
+            raise InputError(f"{path}: the checkpoint has no camera response to continue --learn-response from")
+        trainer.response.load_state_dict(payload["response"]["curve"])
+        trainer.response_opt.load_state_dict(payload["response"]["opt"])
     floor = payload.get("event_floor")   # absent in checkpoints of the count norm, which has none
     trainer.event_floor = None if floor is None else float(floor)
     trainer.step = int(payload["step"])

@@ -53,6 +53,7 @@ class TrainConfig:
     threshold_map: bool = False       # learn per-pixel ON/OFF thresholds (fixed-pattern mismatch), noise norm
     hdr: bool = False                 # renders above 1 are radiance above full scale; the blur clips after
                                       # the exposure integral (losses.srgb_to_linear_hdr_torch)
+    learn_response: bool = False      # learn a monotone camera response before the sRGB decode (response.py)
     edi_prior: float = 0.0            # weight of the EDI prior (edi_prior.py), per unit of chi-square; 0 = off
     edi_anneal: float = 0.5           # the prior's weight falls linearly to 0 at this fraction of the run
     ssim_lambda: float = 0.2
@@ -93,6 +94,11 @@ class TrainConfig:
         check(self.blur_space in ("auto", "srgb", "linear"), "--blur-space must be auto, srgb or linear")
         check(not (self.hdr and self.blur_space == "srgb"),
               "--hdr needs the linear-light blur model, not --blur-space srgb")
+        check(not (self.learn_response and self.blur_space == "srgb"),
+              "--learn-response needs the linear-light blur model, not --blur-space srgb")
+        check(not (self.learn_response and (self.oracle or self.naive)),
+              "--learn-response needs the blur model (a sharp frame's decode and encode cancel): not with "
+              "--oracle or --naive")
         check(self.edi_prior >= 0, "--edi-prior must be >= 0")
         check(0 < self.edi_anneal <= 1, "--edi-anneal must be in (0, 1]")
         check(not self.edi_prior or self.event_norm == "noise",

@@ -112,6 +112,7 @@ class Trainer:
         if cfg.hdr and self.data.blur_space != "linear":
             raise ConfigError("--hdr needs the linear-light blur model (--blur-space linear, or a scene whose "
                               "/train transfer is srgb)")
+        self.response, self.response_opt = self._response()  # --learn-response (response.py)
         self.model = init_model(self.data, cfg, self.device)
         self.optimizers = self.model.make_optimizers(scene_scale=self.data.scene_scale)
         self.means_lr0 = self.optimizers["means"].param_groups[0]["lr"]
@@ -175,6 +176,20 @@ class Trainer:
             log_b = log_intensity(d.images, d.color_filter, d.log_knee, d.event_transfer, d.raw_matrix)
         return log_b, valid_mask(d.images, log_b, d.log_knee)
 
+    def _response(self):
+        """--learn-response: the curve and its optimizer, refused where the frame is not decoded with sRGB."""
+        if not self.cfg.learn_response:
+            return None, None
+        from .response import RESPONSE_LR, ResponseCurve
+
+        d = self.data
+        if d.blur_space != "linear" or (self.cfg.uses_events and d.event_transfer != "srgb"):
+            raise ConfigError("--learn-response needs a scene whose frames are decoded with sRGB: the linear-light "
+                              f"blur model and sRGB events (this run: {d.blur_space} blur model, "
+                              f"{d.event_transfer} events)")
+        curve = ResponseCurve(device=self.device)
+        return curve, torch.optim.Adam([curve.logits], lr=RESPONSE_LR)
+
     def _next_view(self) -> int:
         if not self.view_queue:
             self.view_queue = torch.randperm(self.data.n_views, generator=self.generator).tolist()
@@ -223,12 +238,15 @@ class Trainer:
         # both losses decode the renders to linear light (blur average in linear light, events from linear
         # intensity): decode once, so the decode and its backward run once per step. --hdr: renders above 1
         # decode to radiance above full scale, and the sensor's clip follows the exposure integral
+        shown = stack if self.response is None else self.response(stack)  # --learn-response: h(render)
         if cfg.hdr:
-            lin = srgb_to_linear_hdr_torch(stack)
+            lin = srgb_to_linear_hdr_torch(shown)
         else:
-            lin = (srgb_to_linear_torch(stack) if self.use_events and data.blur_space == "linear"
-                   and data.event_transfer == "srgb" else None)
+            lin = (srgb_to_linear_torch(shown) if self.response is not None or (
+                self.use_events and data.blur_space == "linear" and data.event_transfer == "srgb") else None)
         avg = blur_average(stack, data.blur_space, linear=lin)  # data.blur_space: "auto" resolved from the scene
+        if self.response is not None:  # back through h^-1 to the frame's display values
+            avg = self.response.inverse(avg)
         l_blur = average_loss(avg, target, cfg.ssim_lambda, clip=cfg.hdr)
         loss = l_blur
         l_event = l_edi = torch.zeros((), device=self.device)
@@ -266,9 +284,10 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
-        if self.threshold_opt is not None:
-            self.threshold_opt.step()
-            self.threshold_opt.zero_grad(set_to_none=True)
+        for opt in (self.threshold_opt, self.response_opt):
+            if opt is not None:
+                opt.step()
+                opt.zero_grad(set_to_none=True)
         pose_info = self.pose_refiner.step(self.step) if self.pose_refiner is not None else {}
         refined = {}
         if cfg.densify:
@@ -370,6 +389,11 @@ class Trainer:
                         # --threshold-map: (2, H, W) ON/OFF multipliers of the thresholds above
                         "threshold_map": (None if self.threshold_map is None
                                           else self.threshold_map.multiplier.clone())}, tmp)
+        if self.response is not None:  # --learn-response: the curve, for the user to read
+            with atomic_path(self.run_dir / "response.json") as tmp:
+                Path(tmp).write_text(json.dumps(self.response.table(), indent=1) + "\n")
+        else:
+            (self.run_dir / "response.json").unlink(missing_ok=True)
         if self.pose_refiner is not None:  # the refined trajectory, read by eval
             self.pose_refiner.save(self.run_dir / "trajectory.npz")
         else:  # never leave an older run's trajectory beside this model
@@ -377,7 +401,8 @@ class Trainer:
 
 
 # what `ev3dgs train` and `ev3dgs eval` write in a run folder; a fresh run removes them (and nothing else)
-RUN_FILES = ("config.json", "model.pt", "ckpt.pt", "log.jsonl", "metrics.json", "trajectory.npz", "training.png")
+RUN_FILES = ("config.json", "model.pt", "ckpt.pt", "log.jsonl", "metrics.json", "trajectory.npz", "training.png",
+             "response.json")
 RUN_MARKERS = ("config.json", "model.pt", "ckpt.pt", "metrics.json")  # a folder with one of these holds a run
 
 

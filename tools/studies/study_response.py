@@ -1,0 +1,204 @@
+"""Study: a camera whose tone curve the scene does not declare, and what `ev3dgs train --learn-response` wins back.
+
+One cell of study_event_term's sweep (default heldout_shake at threshold 0.05 with 10 % relative mismatch) is
+copied with every frame (blurry, sharp and test) passed through a contrast curve S applied to the 8-bit display
+values, d' = S(d) with S(x) = x^c / (x^c + (1 - x)^c) (c = --contrast; a camera's S-shaped tone curve),
+re-quantised to 8 bits; the events are the cell's (the DVS sees the same light) and the file still declares sRGB
+frames, as a user who does not know the camera's curve would. The trainer's sRGB decode is then wrong by S^-1:
+the sub-poses' average and the events' log changes no longer describe the same light.
+
+Variants, on the curved copy ("tone") and on the cell itself ("srgb", where sRGB is the truth and the curve has
+nothing to find): blur-only, blur+event, blur+event with --learn-response, and the sharp oracle (tone only). Each
+model is scored on its own training file (its sharp and test frames carry the curve). For the learned curves
+the JSON gives the largest difference between the learned h and the truth S^-1 at the knots.
+
+    python tools/studies/study_response.py --json tools/results/study_response.json \\
+        --plot tools/results/study_response.png [--seeds 0 1] [--theta 0.05] [--mismatch 0.1] [--contrast 1.5]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))
+sys.path.insert(0, str(ROOT / "tools" / "bench"))
+sys.path.insert(0, str(ROOT / "tools" / "studies"))
+
+from pareto import save_json  # noqa: E402
+
+# variant -> (TrainConfig overrides, on the sRGB cell too)
+VARIANTS = {
+    "blur-only": (dict(event_loss=False), False),
+    "blur+event": (dict(event_norm="noise"), True),
+    "blur+event-response": (dict(event_norm="noise", learn_response=True), True),
+    "oracle": (dict(oracle=True), False),
+}
+
+
+def contrast_curve(x: np.ndarray, c: float) -> np.ndarray:
+    """S(x) = x^c / (x^c + (1 - x)^c) on [0, 1]: S(0) = 0, S(1) = 1, S(1/2) = 1/2, slope c at 1/2."""
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    a, b = x ** c, (1.0 - x) ** c
+    return a / (a + b)
+
+
+def inverse_contrast_curve(y: np.ndarray, c: float) -> np.ndarray:
+    """S^-1: the same family with 1/c (x^c/(1-x)^c = y/(1-y) <=> x/(1-x) = (y/(1-y))^(1/c))."""
+    return contrast_curve(y, 1.0 / c)
+
+
+def tone_scene(cell: Path, c: float, out: Path) -> Path:
+    """Write (once) the cell with every 8-bit frame through S (``contrast_curve``), re-quantised."""
+    if out.exists():
+        return out
+    from ev3dgs import schema
+
+    lut = np.clip(np.rint(contrast_curve(np.arange(256) / 255.0, c) * 255.0), 0, 255).astype(np.uint8)
+    sc = schema.read(cell)
+    tr = replace(sc.train, images=lut[np.asarray(sc.train.images)], sharp=lut[np.asarray(sc.train.sharp)])
+    te = replace(sc.test, images=lut[np.asarray(sc.test.images)])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    schema.write(replace(sc, train=tr, test=te), out)
+    return out
+
+
+def _job(job: dict) -> dict:
+    import torch
+
+    from bench_fidelity import run_one
+
+    torch.set_num_threads(1)
+    t = time.perf_counter()
+    out = Path(job["out"])
+    m = run_one(Path(job["scene"]), job["overrides"], job["seed"], job["iterations"], job["init_points"], out)
+    r = {k: job[k] for k in ("kind", "variant", "seed")} | {"metrics": m, "wall": time.perf_counter() - t}
+    if (out / "response.json").exists():
+        table = json.loads((out / "response.json").read_text())
+        x = np.asarray(table["display"])
+        truth = inverse_contrast_curve(x, job["contrast"]) if job["kind"] == "tone" else x
+        r["response"] = table | {"max_error": float(np.max(np.abs(np.asarray(table["decoded_as"]) - truth))),
+                                 "max_error_at_start": float(np.max(np.abs(x - truth)))}
+    return r
+
+
+def summarise(runs: list[dict]) -> dict:
+    out: dict = {}
+    for r in runs:
+        d = out.setdefault(r["kind"], {}).setdefault(r["variant"], {"blur_view": [], "novel_view": [], "seeds": [],
+                                                                    "train_s": []})
+        for view in ("blur_view", "novel_view"):
+            d[view].append(r["metrics"][view]["psnr"])
+        d["seeds"].append(r["seed"])
+        d["train_s"].append(r["metrics"].get("train_seconds", float("nan")))
+        if "response" in r:
+            d.setdefault("response_max_error", []).append(r["response"]["max_error"])
+    return out
+
+
+def plot(summary: dict, runs: list[dict], contrast: float, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 3.8), gridspec_kw={"width_ratios": [2, 1]})
+    labels, bars = [], []
+    for kind in ("tone", "srgb"):
+        for v in VARIANTS:
+            if v in summary.get(kind, {}):
+                labels.append(f"{kind}: {v}")
+                bars.append(summary[kind][v])
+    x = np.arange(len(labels))
+    for k, (view, col) in enumerate((("blur_view", "C0"), ("novel_view", "C1"))):
+        vals = [b[view] for b in bars]
+        ax.bar(x + (k - 0.5) * 0.38, [np.mean(v) for v in vals], 0.38, color=col, label=view.replace("_", " "),
+               yerr=[[np.mean(v) - min(v) for v in vals], [max(v) - np.mean(v) for v in vals]], capsize=2)
+    lo = min(min(b[v]) for b in bars for v in ("blur_view", "novel_view"))
+    ax.set_ylim(lo - 1.5, None)
+    ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("PSNR (dB), mean and range over seeds")
+    ax.legend(fontsize=8)
+    xs = np.linspace(0, 1, 201)
+    ax2.plot(xs, inverse_contrast_curve(xs, contrast), "k--", label="truth S^-1")
+    ax2.plot(xs, xs, "k:", lw=0.8, label="sRGB as declared")
+    for r in runs:
+        if "response" in r and r["kind"] == "tone":
+            ax2.plot(r["response"]["display"], r["response"]["decoded_as"], "-", alpha=0.7,
+                     label=f"learned, seed {r['seed']}")
+    ax2.set_xlabel("display value in the file")
+    ax2.set_ylabel("value the sRGB decode sees")
+    ax2.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(png, dpi=120)
+
+
+def main(argv=None) -> int:
+    from study_event_term import cell_name, make_cells
+
+    from ev3dgs.train.jobs import default_jobs, run_parallel
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default=str(ROOT / "tools/scenes/heldout_shake.toml"))
+    ap.add_argument("--theta", type=float, default=0.05, help="the cell's threshold (default %(default)s)")
+    ap.add_argument("--mismatch", type=float, default=0.1, help="... and relative mismatch (default %(default)s)")
+    ap.add_argument("--contrast", type=float, default=1.5, help="the tone curve's slope at mid-grey, > 0 "
+                    "(default %(default)s)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=tuple(VARIANTS))
+    ap.add_argument("--iterations", type=int, default=1000)
+    ap.add_argument("--init-points", type=int, default=5000)
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--size", default="96x72")
+    ap.add_argument("--samples", type=int, default=8, help="Cycles samples per pixel (default %(default)s)")
+    ap.add_argument("--jobs", type=int, default=default_jobs())
+    ap.add_argument("--cache", default=str(ROOT / "tools/results/event_term_cache"))
+    ap.add_argument("--json", required=True)
+    ap.add_argument("--plot")
+    a = ap.parse_args(argv)
+    if not a.contrast > 0:
+        ap.error("--contrast must be > 0")
+    w, h = (int(x) for x in a.size.split("x"))
+    render = dict(width=w, height=h, views=a.views, test_views=max(2, a.views // 3), subframes=17,
+                  samples=a.samples)
+    t0 = time.perf_counter()
+    cache = Path(a.cache)
+    name = cell_name(a.theta, a.mismatch)
+    cell = make_cells(a.scene, [a.theta], [a.mismatch], render, cache, quiet=True)[name]
+    scenes = {"tone": tone_scene(cell, a.contrast, cache / "derived" / f"tone_c{a.contrast:g}_{name}.h5"),
+              "srgb": cell}
+    jobs = []
+    for seed in a.seeds:
+        for v in a.variants:
+            overrides, on_srgb = VARIANTS[v]
+            for kind in ("tone", "srgb") if on_srgb else ("tone",):
+                tag = f"tone_c{a.contrast:g}_{name}" if kind == "tone" else name
+                jobs.append(dict(kind=kind, variant=v, seed=seed, scene=str(scenes[kind]), overrides=overrides,
+                                 iterations=a.iterations, init_points=a.init_points, contrast=a.contrast,
+                                 out=str(cache / "runs" / f"{tag}_{v}_s{seed}")))
+    jobs.sort(key=lambda j: (j["seed"], "oracle" in j["variant"]))
+
+    def report(r):
+        m = r["metrics"]
+        extra = f", curve off by {r['response']['max_error']:.3f}" if "response" in r else ""
+        print(f"  {r['kind']:4s} {r['variant']:20s} seed {r['seed']}: blur view {m['blur_view']['psnr']:.2f}, "
+              f"novel {m['novel_view']['psnr']:.2f} dB ({r['wall']:.0f} s{extra})", flush=True)
+
+    runs = run_parallel(_job, jobs, a.jobs, report)
+    summary = summarise(runs)
+    save_json(a.json, {"settings": {**vars(a), "render": render}, "cores": default_jobs(), "summary": summary,
+                       "runs": runs, "seconds": time.perf_counter() - t0})
+    if a.plot:
+        plot(summary, runs, a.contrast, Path(a.plot))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
