@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 ROOT = Path(__file__).resolve().parents[1]
 for sub in ("tools", "tools/bench", "tools/studies"):
@@ -206,3 +208,32 @@ def test_event_term_plot_draws_every_variant_or_the_ones_asked_for(tmp_path):
     assert png.stat().st_size > 1000
     assert se.plot(summary, [0.05, 0.1], [0.1], png, ["blur+event-px2", "absent"]) == [
         "oracle", "blur+event-px2, mismatch 0.1"]
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(0.0, 1.0), st.floats(0.2, 5.0))
+def test_response_study_contrast_curve_and_its_inverse(x, c):
+    import study_response as sr
+
+    # S(S^-1(y)) = y, the curve is monotone and fixes 0, 1/2 and 1 (closed form: x/(1-x) -> (x/(1-x))^c)
+    y = sr.contrast_curve(x, c)
+    assert abs(sr.contrast_curve(sr.inverse_contrast_curve(y, c), c) - y) <= 1e-12
+    assert sr.contrast_curve(0.0, c) == 0.0 and sr.contrast_curve(1.0, c) == 1.0
+    assert abs(sr.contrast_curve(0.5, c) - 0.5) <= 1e-15
+    assert sr.contrast_curve(min(x + 1e-3, 1.0), c) >= y
+
+
+def test_response_study_tone_scene_curves_every_frame_and_keeps_the_rest(tmp_path):
+    import study_response as sr
+
+    cell, _, _ = make_cell(tmp_path, "ficus")
+    out = sr.tone_scene(cell, 1.5, tmp_path / "derived" / "tone.h5")
+    a, b = schema.read(cell), schema.read(out)
+    want = lambda img: np.clip(np.rint(sr.contrast_curve(np.asarray(img) / 255.0, 1.5) * 255), 0, 255)  # noqa: E731
+    for got, src in ((b.train.images, a.train.images), (b.train.sharp, a.train.sharp),
+                     (b.test.images, a.test.images)):
+        assert np.array_equal(np.asarray(got), want(src))
+    assert np.array_equal(b.train.poses, a.train.poses) and len(b.events) == len(a.events)
+    assert b.train.transfer == "srgb"       # the file still declares sRGB: the curve is the camera's secret
+    mtime = out.stat().st_mtime_ns
+    assert sr.tone_scene(cell, 1.5, out) == out and out.stat().st_mtime_ns == mtime   # made once

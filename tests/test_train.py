@@ -186,6 +186,8 @@ def test_learn_response_is_refused_where_the_frames_are_not_decoded_with_srgb(sc
         cfg(scene_path, learn_response=True, blur_space="srgb")
     with pytest.raises(ConfigError, match="--learn-response needs the blur model"):
         cfg(scene_path, learn_response=True, oracle=True)
+    with pytest.raises(ConfigError, match="--learn-response with --edi-prior"):
+        cfg(scene_path, learn_response=True, edi_prior=0.05)
     sc = schema.read(scene_path)
     sc.train.transfer = "display"
     schema.write(sc, tmp_path / "display.h5")

@@ -99,6 +99,8 @@ class TrainConfig:
         check(not (self.learn_response and (self.oracle or self.naive)),
               "--learn-response needs the blur model (a sharp frame's decode and encode cancel): not with "
               "--oracle or --naive")
+        check(not (self.learn_response and self.edi_prior),
+              "--learn-response with --edi-prior: the prior's targets come from the frames decoded once, as sRGB")
         check(self.edi_prior >= 0, "--edi-prior must be >= 0")
         check(0 < self.edi_anneal <= 1, "--edi-anneal must be in (0, 1]")
         check(not self.edi_prior or self.event_norm == "noise",

@@ -53,7 +53,10 @@ VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blu
             "blur+event-edi": dict(edi_prior=8 / 625), "blur+event-hdr-sh-edi": dict(hdr=True, sh_interval=33,
                                                                                     edi_prior=8 / 625),
             # each view's sub-poses from its motion, at most 2 px apart, up to 17 (--subpose-px 2)
-            "blur+event-px2": dict(subposes=17, subpose_px=2.0)}
+            "blur+event-px2": dict(subposes=17, subpose_px=2.0),
+            # a learned camera response before the sRGB decode (--learn-response), alone and with --hdr
+            "blur+event-response": dict(learn_response=True),
+            "blur+event-hdr-response": dict(hdr=True, learn_response=True)}
 DEFAULT_VARIANTS = ("naive", "blur-only", "blur+event", "oracle")
 # The full table is sized so that a 2-core CPU finishes it in about an hour (48 runs, two at a time); the
 # issue's example size (128x96, 3000 steps) is ~4x that: --size 128x96 --steps 3000.

@@ -40,7 +40,10 @@ VARIANTS = {
     "blur+event": (dict(event_norm="noise"), True),
     "blur+event-response": (dict(event_norm="noise", learn_response=True), True),
     "oracle": (dict(oracle=True), False),
+    "blur+event-hdr": (dict(event_norm="noise", hdr=True), True),
+    "blur+event-hdr-response": (dict(event_norm="noise", hdr=True, learn_response=True), True),
 }
+DEFAULT_VARIANTS = ("blur-only", "blur+event", "blur+event-response", "oracle")
 
 
 def contrast_curve(x: np.ndarray, c: float) -> np.ndarray:
@@ -152,7 +155,7 @@ def main(argv=None) -> int:
     ap.add_argument("--contrast", type=float, default=1.5, help="the tone curve's slope at mid-grey, > 0 "
                     "(default %(default)s)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
-    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=tuple(VARIANTS))
+    ap.add_argument("--variants", nargs="+", default=list(DEFAULT_VARIANTS), choices=tuple(VARIANTS))
     ap.add_argument("--iterations", type=int, default=1000)
     ap.add_argument("--init-points", type=int, default=5000)
     ap.add_argument("--views", type=int, default=12)
