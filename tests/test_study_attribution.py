@@ -226,13 +226,19 @@ def test_response_study_contrast_curve_and_its_inverse(x, c):
 def test_response_study_tone_scene_curves_every_frame_and_keeps_the_rest(tmp_path):
     import study_response as sr
 
+    from dataclasses import replace
+
     cell, _, _ = make_cell(tmp_path, "ficus")
+    sc = schema.read(cell)
+    schema.write(replace(sc, camera=replace(sc.camera, background=(0.3, 0.5, 0.9))), cell)
     out = sr.tone_scene(cell, 1.5, tmp_path / "derived" / "tone.h5")
     a, b = schema.read(cell), schema.read(out)
     want = lambda img: np.clip(np.rint(sr.contrast_curve(np.asarray(img) / 255.0, 1.5) * 255), 0, 255)  # noqa: E731
     for got, src in ((b.train.images, a.train.images), (b.train.sharp, a.train.sharp),
                      (b.test.images, a.test.images)):
         assert np.array_equal(np.asarray(got), want(src))
+    assert np.allclose(b.camera.background, sr.contrast_curve(np.asarray(a.camera.background), 1.5), rtol=0,
+                       atol=1e-15)
     assert np.array_equal(b.train.poses, a.train.poses) and len(b.events) == len(a.events)
     assert b.train.transfer == "srgb"       # the file still declares sRGB: the curve is the camera's secret
     mtime = out.stat().st_mtime_ns

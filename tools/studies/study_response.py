@@ -1,8 +1,8 @@
 """Study: a camera whose tone curve the scene does not declare, and what `ev3dgs train --learn-response` wins back.
 
 One cell of study_event_term's sweep (default heldout_shake at threshold 0.05 with 10 % relative mismatch) is
-copied with every frame (blurry, sharp and test) passed through a contrast curve S applied to the 8-bit display
-values, d' = S(d) with S(x) = x^c / (x^c + (1 - x)^c) (c = --contrast; a camera's S-shaped tone curve),
+copied with every frame (blurry, sharp and test) and the background colour passed through a contrast curve S
+applied to the display values, d' = S(d) with S(x) = x^c / (x^c + (1 - x)^c) (c = --contrast; a camera's S-shaped tone curve),
 re-quantised to 8 bits; the events are the cell's (the DVS sees the same light) and the file still declares sRGB
 frames, as a user who does not know the camera's curve would. The trainer's sRGB decode is then wrong by S^-1:
 the sub-poses' average and the events' log changes no longer describe the same light.
@@ -68,8 +68,10 @@ def tone_scene(cell: Path, c: float, out: Path) -> Path:
     sc = schema.read(cell)
     tr = replace(sc.train, images=lut[np.asarray(sc.train.images)], sharp=lut[np.asarray(sc.train.sharp)])
     te = replace(sc.test, images=lut[np.asarray(sc.test.images)])
+    # the background the renders are composited over is a display value of the same camera
+    cam = replace(sc.camera, background=tuple(float(v) for v in contrast_curve(np.asarray(sc.camera.background), c)))
     out.parent.mkdir(parents=True, exist_ok=True)
-    schema.write(replace(sc, train=tr, test=te), out)
+    schema.write(replace(sc, camera=cam, train=tr, test=te), out)
     return out
 
 
