@@ -87,6 +87,8 @@ study-attribution: setup
 	$(BIN)/python tools/studies/study_attribution.py --variants info-oracle oracle blur-ideal@17 blur-only@17 \
 		blur-only blur+event blur+event@17 blur+event@4pairs oracle@3000 blur-only@3000 blur+event@3000 \
 		--json tools/results/study_attribution.json --plot tools/results/study_attribution.png
+	$(BIN)/python tools/studies/study_attribution.py --variants info-oracle-sh oracle-sh --seeds 0 1 2 \
+		--json tools/results/study_attribution_sh.json
 	$(BIN)/python tools/studies/study_attribution.py --scene lowlight --theta 0.2 --mismatch 0.15 --samples 16 \
 		--variants naive blur-only blur+event oracle oracle-noisy info-oracle blur-ideal@17 blur-clean@17 \
 		blur-only@17 --cache tools/results/attribution_cache_lowlight \

@@ -249,8 +249,10 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
 @pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"], ["--blur-space", "linear", "--learn-thresholds",
                                                                       "--event-pairs", "3", "--threshold-map", "--hdr",
                                                                       "--sh-interval", "4", "--edi-prior", "0.02",
-                                                                      "--subposes", "7", "--subpose-px", "0.5",
-                                                                      "--learn-response"]])
+                                                                      "--subposes", "7", "--subpose-px", "0.5"],
+                                   ["--hdr", "--learn-response", "--event-pairs", "2"],
+                                   pytest.param(["--refine-poses", "--subposes", "9", "--subpose-px", "0.5"],
+                                                marks=pytest.mark.slow)])
 def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
     run = tmp_path / "run"
     assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--init-points", "300",
@@ -264,6 +266,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     assert saved["edi_prior"] == (0.02 if "--edi-prior" in flags else 0.0)
     assert saved["subpose_px"] == (0.5 if "--subpose-px" in flags else 0.0)
     assert saved["learn_response"] == ("--learn-response" in flags)
+    assert (run / "trajectory.npz").exists() == ("--refine-poses" in flags)
     assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply")]) == 0
     assert len(load_ply(tmp_path / "m.ply")) > 0
     assert cli.main(["render", str(run), "--out", str(tmp_path / "frames"), "--frames", "3"]) == 0
