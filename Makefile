@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: setup test test-slow demo docs bench study-quick study study-event-term study-attribution bench-fidelity bench-fidelity-quick clean
+.PHONY: setup test test-slow demo docs bench study-quick study study-event-term study-attribution study-response bench-fidelity bench-fidelity-quick clean
 
 setup: $(STAMP)
 
@@ -93,6 +93,13 @@ study-attribution: setup
 		--variants naive blur-only blur+event oracle oracle-noisy info-oracle blur-ideal@17 blur-clean@17 \
 		blur-only@17 --cache tools/results/attribution_cache_lowlight \
 		--json tools/results/study_attribution_lowlight.json --plot tools/results/study_attribution_lowlight.png
+
+# a camera with a tone curve the scene does not declare, and --learn-response (heldout_shake at theta 0.05; shares
+# study-event-term's renders; ~20 min on 2 cores after them)
+study-response: setup
+	$(BIN)/python tools/studies/study_response.py --variants blur-only blur+event blur+event-response oracle \
+		blur+event-hdr blur+event-hdr-response --json tools/results/study_response.json \
+		--plot tools/results/study_response.png
 
 # naive / blur-only / blur+event / sharp oracle on the built-in scenes, 3 seeds (~1 h on 2 cores);
 # the quick one is lego, one seed, small size (<= 10 minutes)

@@ -89,8 +89,11 @@ def _job(job: dict) -> dict:
         table = json.loads((out / "response.json").read_text())
         x = np.asarray(table["display"])
         truth = inverse_contrast_curve(x, job["contrast"]) if job["kind"] == "tone" else x
-        r["response"] = table | {"max_error": float(np.max(np.abs(np.asarray(table["decoded_as"]) - truth))),
-                                 "max_error_at_start": float(np.max(np.abs(x - truth)))}
+        err = np.abs(np.asarray(table["decoded_as"]) - truth)
+        r["response"] = table | {"max_error": float(err.max()), "max_error_at_start": float(np.max(np.abs(x - truth))),
+                                 # where the curve is found: the shadows (below mid-grey) and the rest
+                                 "max_error_below_half": float(err[x < 0.5].max()),
+                                 "max_error_from_half": float(err[x >= 0.5].max())}
     return r
 
 
@@ -104,7 +107,8 @@ def summarise(runs: list[dict]) -> dict:
         d["seeds"].append(r["seed"])
         d["train_s"].append(r["metrics"].get("train_seconds", float("nan")))
         if "response" in r:
-            d.setdefault("response_max_error", []).append(r["response"]["max_error"])
+            for k in ("max_error", "max_error_below_half", "max_error_from_half", "max_error_at_start"):
+                d.setdefault(f"response_{k}", []).append(r["response"][k])
     return out
 
 
@@ -137,7 +141,7 @@ def plot(summary: dict, runs: list[dict], contrast: float, png: Path) -> None:
     for r in runs:
         if "response" in r and r["kind"] == "tone":
             ax2.plot(r["response"]["display"], r["response"]["decoded_as"], "-", alpha=0.7,
-                     label=f"learned, seed {r['seed']}")
+                     label=f"{r['variant']}, seed {r['seed']}")
     ax2.set_xlabel("display value in the file")
     ax2.set_ylabel("value the sRGB decode sees")
     ax2.legend(fontsize=7)
