@@ -217,6 +217,20 @@ def attribution(summary: dict) -> list[dict]:
     return rows
 
 
+def psnr_bars(ax, labels: list[str], entries: list[dict]) -> None:
+    """Blur-view and novel-view PSNR bars per entry (a summary's variant: lists per view), mean and range."""
+    x = np.arange(len(labels))
+    for k, (view, col) in enumerate((("blur_view", "C0"), ("novel_view", "C1"))):
+        vals = [e[view] for e in entries]
+        ax.bar(x + (k - 0.5) * 0.38, [np.mean(v) for v in vals], 0.38, color=col, label=view.replace("_", " "),
+               yerr=[[np.mean(v) - min(v) for v in vals], [max(v) - np.mean(v) for v in vals]], capsize=2)
+    lo = min(min(e[v]) for e in entries for v in ("blur_view", "novel_view"))
+    ax.set_ylim(lo - 1.5, None)
+    ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("PSNR (dB), mean and range over seeds")
+    ax.legend(fontsize=8)
+
+
 def plot(summary: dict, png: Path) -> None:
     import matplotlib
 
@@ -225,18 +239,31 @@ def plot(summary: dict, png: Path) -> None:
 
     names = [v for v in VARIANTS if v in summary]
     fig, ax = plt.subplots(figsize=(10, 3.8))
-    x = np.arange(len(names))
-    for k, (view, col) in enumerate((("blur_view", "C0"), ("novel_view", "C1"))):
-        vals = [summary[n][view] for n in names]
-        ax.bar(x + (k - 0.5) * 0.38, [np.mean(v) for v in vals], 0.38, color=col, label=view.replace("_", " "),
-               yerr=[[np.mean(v) - min(v) for v in vals], [max(v) - np.mean(v) for v in vals]], capsize=2)
-    lo = min(min(summary[n][v]) for n in names for v in ("blur_view", "novel_view"))
-    ax.set_ylim(lo - 1.5, None)
-    ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
-    ax.set_ylabel("PSNR (dB), mean and range over seeds")
-    ax.legend(fontsize=8)
+    psnr_bars(ax, names, [summary[n] for n in names])
     fig.tight_layout()
     fig.savefig(png, dpi=120)
+
+
+def add_run_args(ap) -> None:
+    """The training, render, cache and output options the heldout_shake studies share."""
+    from ev3dgs.train.jobs import default_jobs
+
+    ap.add_argument("--iterations", type=int, default=1000)
+    ap.add_argument("--init-points", type=int, default=5000)
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--size", default="96x72")
+    ap.add_argument("--samples", type=int, default=8, help="Cycles samples per pixel (default %(default)s)")
+    ap.add_argument("--jobs", type=int, default=default_jobs())
+    ap.add_argument("--cache", default=str(ROOT / "tools/results/event_term_cache"))
+    ap.add_argument("--json", required=True)
+    ap.add_argument("--plot")
+
+
+def render_settings(a) -> dict:
+    """study_event_term's render of the scene (17 sub-frames per exposure) from ``add_run_args``' options."""
+    w, h = (int(x) for x in a.size.split("x"))
+    return dict(width=w, height=h, views=a.views, test_views=max(2, a.views // 3), subframes=SUBFRAMES,
+                samples=a.samples)
 
 
 def main(argv=None) -> int:
@@ -250,19 +277,9 @@ def main(argv=None) -> int:
     ap.add_argument("--mismatch", type=float, default=0.1, help="... and relative mismatch (default 0.1)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=tuple(VARIANTS))
-    ap.add_argument("--iterations", type=int, default=1000)
-    ap.add_argument("--init-points", type=int, default=5000)
-    ap.add_argument("--views", type=int, default=12)
-    ap.add_argument("--size", default="96x72")
-    ap.add_argument("--samples", type=int, default=8, help="Cycles samples per pixel (default %(default)s)")
-    ap.add_argument("--jobs", type=int, default=default_jobs())
-    ap.add_argument("--cache", default=str(ROOT / "tools/results/event_term_cache"))
-    ap.add_argument("--json", required=True)
-    ap.add_argument("--plot")
+    add_run_args(ap)
     a = ap.parse_args(argv)
-    w, h = (int(x) for x in a.size.split("x"))
-    render = dict(width=w, height=h, views=a.views, test_views=max(2, a.views // 3), subframes=SUBFRAMES,
-                  samples=a.samples)
+    render = render_settings(a)
     t0 = time.perf_counter()
     cache = Path(a.cache)
     # the first cell of study_event_term's default sweep is the file its sensor-free runs trained on: reused

@@ -114,6 +114,7 @@ def summarise(runs: list[dict]) -> dict:
 
 def plot(summary: dict, runs: list[dict], contrast: float, png: Path) -> None:
     import matplotlib
+    from study_attribution import psnr_bars
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -125,16 +126,7 @@ def plot(summary: dict, runs: list[dict], contrast: float, png: Path) -> None:
             if v in summary.get(kind, {}):
                 labels.append(f"{kind}: {v}")
                 bars.append(summary[kind][v])
-    x = np.arange(len(labels))
-    for k, (view, col) in enumerate((("blur_view", "C0"), ("novel_view", "C1"))):
-        vals = [b[view] for b in bars]
-        ax.bar(x + (k - 0.5) * 0.38, [np.mean(v) for v in vals], 0.38, color=col, label=view.replace("_", " "),
-               yerr=[[np.mean(v) - min(v) for v in vals], [max(v) - np.mean(v) for v in vals]], capsize=2)
-    lo = min(min(b[v]) for b in bars for v in ("blur_view", "novel_view"))
-    ax.set_ylim(lo - 1.5, None)
-    ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
-    ax.set_ylabel("PSNR (dB), mean and range over seeds")
-    ax.legend(fontsize=8)
+    psnr_bars(ax, labels, bars)
     xs = np.linspace(0, 1, 201)
     ax2.plot(xs, inverse_contrast_curve(xs, contrast), "k--", label="truth S^-1")
     ax2.plot(xs, xs, "k:", lw=0.8, label="sRGB as declared")
@@ -150,6 +142,7 @@ def plot(summary: dict, runs: list[dict], contrast: float, png: Path) -> None:
 
 
 def main(argv=None) -> int:
+    from study_attribution import add_run_args, render_settings
     from study_event_term import cell_name, make_cells
 
     from ev3dgs.train.jobs import default_jobs, run_parallel
@@ -162,21 +155,11 @@ def main(argv=None) -> int:
                     "(default %(default)s)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--variants", nargs="+", default=list(DEFAULT_VARIANTS), choices=tuple(VARIANTS))
-    ap.add_argument("--iterations", type=int, default=1000)
-    ap.add_argument("--init-points", type=int, default=5000)
-    ap.add_argument("--views", type=int, default=12)
-    ap.add_argument("--size", default="96x72")
-    ap.add_argument("--samples", type=int, default=8, help="Cycles samples per pixel (default %(default)s)")
-    ap.add_argument("--jobs", type=int, default=default_jobs())
-    ap.add_argument("--cache", default=str(ROOT / "tools/results/event_term_cache"))
-    ap.add_argument("--json", required=True)
-    ap.add_argument("--plot")
+    add_run_args(ap)
     a = ap.parse_args(argv)
     if not a.contrast > 0:
         ap.error("--contrast must be > 0")
-    w, h = (int(x) for x in a.size.split("x"))
-    render = dict(width=w, height=h, views=a.views, test_views=max(2, a.views // 3), subframes=17,
-                  samples=a.samples)
+    render = render_settings(a)
     t0 = time.perf_counter()
     cache = Path(a.cache)
     name = cell_name(a.theta, a.mismatch)
