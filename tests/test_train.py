@@ -359,6 +359,6 @@ def test_bench_train_options_times_every_variant_at_its_sh_degree(scene_path, tm
     res = json.loads(out.read_text())
     assert set(res["ms_per_step"]) == set(VARIANTS) and res["ratio_to_default"]["default"] == 1.0
     assert res["sh_degree"] == {"default": 0, "--hdr": 0, "SH degree 3": 3, "--hdr, SH degree 3": 3,
-                                "--edi-prior": 0, "17 sub-poses": 0, "--subpose-px 2": 0}
+                                "--edi-prior": 0, "17 sub-poses": 0, "--subpose-px 2": 0, "--learn-response": 0}
     assert set(res["ms_mean"]) == set(VARIANTS) and res["mean_ratio_to_default"]["default"] == 1.0
     assert all(v > 0 for v in res["ms_per_step"].values()) and (tmp_path / "o.png").stat().st_size > 1000

@@ -1,7 +1,8 @@
 """What the trainer's fidelity options cost per step: the blur + event step on one scene file with the defaults,
 ``--hdr``, the SH degree at 3 (``--sh-interval 1``: degree 3 from the fourth step), both, and the EDI prior
 (``--edi-prior``, kept on through the timed steps), 17 sub-poses per exposure instead of 5, and each view's
-count from its motion (``--subpose-px 2``, up to 17), one thread.
+count from its motion (``--subpose-px 2``, up to 17), and a learned camera response (``--learn-response``), one
+thread.
 The variants' steps are interleaved round by round, so a busy machine slows them alike; the result is each
 variant's median ms per step and its ratio to the default's, and the mean (with ``--subpose-px`` a step's cost
 depends on its view: the mean over many visits of every view is what a run pays; every variant visits the
@@ -30,7 +31,8 @@ from pareto import save_json  # noqa: E402
 VARIANTS = {"default": {}, "--hdr": {"hdr": True}, "SH degree 3": {"sh_interval": 1},
             "--hdr, SH degree 3": {"hdr": True, "sh_interval": 1},
             "--edi-prior": {"edi_prior": 8 / 625, "edi_anneal": 1.0},
-            "17 sub-poses": {"subposes": 17}, "--subpose-px 2": {"subposes": 17, "subpose_px": 2.0}}
+            "17 sub-poses": {"subposes": 17}, "--subpose-px 2": {"subposes": 17, "subpose_px": 2.0},
+            "--learn-response": {"learn_response": True}}
 WARMUP = 5   # steps before timing: the SH degree reaches 3 at the fourth step with --sh-interval 1
 
 
