@@ -13,7 +13,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ev3dgs.train.losses import linear_to_srgb_torch, srgb_to_linear_torch
+from ev3dgs.train.losses import HDR_MAX_DISPLAY, linear_to_srgb_torch, srgb_to_linear_hdr_torch, srgb_to_linear_torch
 from ev3dgs.train.response import ResponseCurve
 
 F64 = torch.float64
@@ -59,10 +59,13 @@ def test_monotone_onto_and_inverse(logits, xs):
 @settings(max_examples=50, deadline=None)
 @given(st.lists(st.floats(-60, 60), min_size=2, max_size=16))
 def test_extreme_logits_give_finite_values_and_gradients(logits):
+    # renders from below black to past --hdr's cap, through both decodes the trainer uses and back
     c = _curve(logits)
-    x = torch.linspace(-1.0, 3.0, 101, dtype=F64)
+    x = torch.linspace(-1.0, HDR_MAX_DISPLAY + 1.0, 201, dtype=F64)
     z = c(x)
-    loss = (c.inverse(linear_to_srgb_torch(srgb_to_linear_torch(z))) ** 2).sum() + z.sum()
+    loss = z.sum()
+    for lin in (srgb_to_linear_torch(z), srgb_to_linear_hdr_torch(z)):
+        loss = loss + (c.inverse(linear_to_srgb_torch(lin.mean(dim=0, keepdim=True))) ** 2).sum() + lin.log1p().sum()
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(c.logits.grad).all()
 
