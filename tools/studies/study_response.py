@@ -2,10 +2,10 @@
 
 One cell of study_event_term's sweep (default heldout_shake at threshold 0.05 with 10 % relative mismatch) is
 copied with every frame (blurry, sharp and test) and the background colour passed through a contrast curve S
-applied to the display values, d' = S(d) with S(x) = x^c / (x^c + (1 - x)^c) (c = --contrast; a camera's
-S-shaped tone curve), re-quantised to 8 bits; the events are the cell's (the DVS sees the same light) and the
-file still declares sRGB frames, as a user who does not know the camera's curve would. The trainer's sRGB decode is then wrong by S^-1:
-the sub-poses' average and the events' log changes no longer describe the same light.
+applied to the display values, d' = S(d) with S(x) = x^c / (x^c + (1 - x)^c) (c = --contrast; a camera's S-shaped
+tone curve), re-quantised to 8 bits; the events are the cell's (the DVS sees the same light) and the file still
+declares sRGB frames, as a user who does not know the camera's curve would. The trainer's sRGB decode is then wrong
+by S^-1: the sub-poses' average and the events' log changes no longer describe the same light.
 
 Variants, on the curved copy ("tone") and on the cell itself ("srgb", where sRGB is the truth and the curve has
 nothing to find): blur-only, blur+event, blur+event with --learn-response, and the sharp oracle (tone only). Each
