@@ -8,9 +8,10 @@ declares sRGB frames, as a user who does not know the camera's curve would. The 
 by S^-1: the sub-poses' average and the events' log changes no longer describe the same light.
 
 Variants, on the curved copy ("tone") and on the cell itself ("srgb", where sRGB is the truth and the curve has
-nothing to find): blur-only, blur+event, blur+event with --learn-response, and the sharp oracle (tone only). Each
-model is scored on its own training file (its sharp and test frames carry the curve). For the learned curves
-the JSON gives the largest difference between the learned h and the truth S^-1 at the knots.
+nothing to find): blur-only, blur+event, blur+event with --learn-response, and the sharp oracle (tone only);
+blur+event-hdr and blur+event-hdr-response add --hdr (give them with --variants). Each model is scored on its own
+training file (its sharp and test frames carry the curve). For the learned curves the JSON gives the largest
+difference between the learned h and the truth S^-1 at the knots.
 
     python tools/studies/study_response.py --json tools/results/study_response.json \\
         --plot tools/results/study_response.png [--seeds 0 1] [--theta 0.05] [--mismatch 0.1] [--contrast 1.5]
