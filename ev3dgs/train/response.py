@@ -9,11 +9,11 @@ scene's declared transfer misses, as DiET-GS learns a camera response next to it
     linear = srgb_decode(h(d)),    blurry frame = h^-1(srgb_encode(mean of linear over the sub-poses))
 
 where d is the rendered display value (what the frames and the evaluation compare) and h is a monotone
-piecewise-linear map of [0, 1] onto itself with ``knots`` equal segments. Its segment heights are a softmax of
-free logits, so h is strictly increasing with h(0) = 0 and h(1) = 1 for any logits, and logits of 0 give the
-identity, bit for bit on [0, 1] and below (every height 1/knots, a power of two for the default 16): a run with
-the response learned starts where the fixed decode is. Outside [0, 1] (renders below black, and above full scale with --hdr)
-h continues with its end segments' slopes. Both h and its inverse are exact (no iteration), and deterministic.
+piecewise-linear map of [0, 1] onto itself with ``knots`` equal segments. Its segment heights are a softmax of free
+logits, so h is strictly increasing with h(0) = 0 and h(1) = 1 for any logits, and logits of 0 give the identity,
+bit for bit on [0, 1] and below (every height 1/knots, a power of two for the default 16): a run with the response
+learned starts where the fixed decode is. Outside [0, 1] (renders below black, and above full scale with --hdr) h
+continues with its end segments' slopes. Both h and its inverse are exact (no iteration), and deterministic.
 """
 from __future__ import annotations
 

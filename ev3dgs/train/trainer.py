@@ -391,7 +391,7 @@ class Trainer:
                                           else self.threshold_map.multiplier.clone())}, tmp)
         if self.response is not None:  # --learn-response: the curve, for the user to read
             with atomic_path(self.run_dir / "response.json") as tmp:
-                Path(tmp).write_text(json.dumps(self.response.table(), indent=1) + "\n")
+                tmp.write_text(json.dumps(self.response.table(), indent=1) + "\n")
         else:
             (self.run_dir / "response.json").unlink(missing_ok=True)
         if self.pose_refiner is not None:  # the refined trajectory, read by eval

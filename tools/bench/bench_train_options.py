@@ -89,8 +89,7 @@ def plot(res: dict, png: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", required=True, help="a scene file with events (e.g. a make study-event-term cell)")
-    ap.add_argument("--rounds", type=int, default=48,
-                    help="timed steps per variant (default %(default)s)")
+    ap.add_argument("--rounds", type=int, default=48, help="timed steps per variant (default %(default)s)")
     ap.add_argument("--init-points", type=int, default=5000, help="Gaussians (default %(default)s)")
     ap.add_argument("--json", type=Path, default=ROOT / "tools/results/bench_train_options.json")
     ap.add_argument("--plot", type=Path, default=ROOT / "tools/results/bench_train_options.png")
