@@ -44,3 +44,74 @@ def test_without_cuda_the_real_run_refuses(capsys):
 
 def test_gpu_slug():
     assert gpu_check.gpu_slug("NVIDIA H100 80GB HBM3") == "nvidia_h100_80gb_hbm3"
+
+
+def test_plan_runs_puts_the_baseline_first_and_the_longest_runs_last():
+    plan = gpu_check.plan_runs([300, 30], ["small", "large"], ["blur+event", "naive"], cpu_baseline_steps=5)
+    assert plan[:2] == [("small", "blur+event", 5, "cpu"), ("large", "blur+event", 5, "cpu")]
+    assert [n for _, _, n, be in plan if be == "cuda"] == [30] * 4 + [300] * 4
+    assert plan[2:4] == [("small", "blur+event", 30, "cuda"), ("large", "blur+event", 30, "cuda")]
+    assert gpu_check.plan_runs([3], ["small"], ["naive"], 0) == [("small", "naive", 3, "cuda")]
+
+
+def test_a_run_past_the_deadline_is_scored_where_it_stopped(tmp_path):
+    import time
+
+    scene = gpu_check.synthetic_scene(tmp_path / "b.h5", 24, 18, views=3)
+    r = gpu_check.time_training(str(scene), "blur+event", 4, "cpu", "cpu", 300, tmp_path / "runs",
+                                deadline=time.perf_counter())
+    assert r["cut_by_deadline"] and r["steps_done"] == 1 and r["steps"] == 4 and r["test_psnr"] > 5
+
+
+def test_past_the_deadline_every_run_is_skipped_and_a_failed_run_is_recorded(tmp_path, monkeypatch):
+    out = tmp_path / "g.json"
+    rc = gpu_check.main(["--dry-run", "--skip-tests", "--sizes", "small", "--deadline-minutes", "0", "--json",
+                         str(out), "--workdir", str(tmp_path / "w")])
+    r = json.loads(out.read_text())
+    assert rc == 0 and r["runs"] == [] and len(r["skipped"]) == 3
+    assert {x["why"] for x in r["skipped"]} == {"past the deadline"}
+
+    real = gpu_check.time_training
+
+    def flaky(scene, variant, *a, **k):
+        if variant == "naive":
+            raise RuntimeError("CUDA error: an illegal memory access was encountered")
+        return real(scene, variant, *a, **k)
+
+    monkeypatch.setattr(gpu_check, "time_training", flaky)
+    rc = gpu_check.main(["--dry-run", "--skip-tests", "--sizes", "small", "--variants", "naive", "blur-only",
+                         "--steps", "2", "--json", str(out), "--workdir", str(tmp_path / "w"),
+                         "--plot", str(tmp_path / "g.png")])
+    r = json.loads(out.read_text())
+    assert rc == 1 and [x["variant"] for x in r["runs"]] == ["naive", "blur-only"]
+    assert "illegal memory access" in r["runs"][0]["error"] and "traceback" in r["runs"][0]
+    assert r["runs"][1]["steps_done"] == 2 and (tmp_path / "g.png").stat().st_size > 0
+
+
+def test_merge_keeps_every_run_and_drops_skips_a_later_part_ran(tmp_path):
+    def part(gpu, runs, skipped, tests=None):
+        r = {"gpu": gpu, "environment": {"torch": "2.11", "gsplat": "1.5.3"}, "runs": runs, "skipped": skipped,
+             "kernels": {"ok": True, "seconds": 50.0 if tests else 0.3}, "steps": [3000], "variants": ["naive"],
+             "deadline_minutes": 5, "seconds": 9.0}
+        if tests:
+            r["gpu_tests"] = {"summary": tests}
+        return r
+
+    run = dict(size="small", variant="naive", steps=3000, backend="cuda", width=96, height=72, ms_per_step=5.0,
+               test_psnr=25.0)
+    a = part("H", [dict(run, variant="blur-only")], [dict(size="small", variant="naive", steps=3000, backend="cuda",
+                                                          why="past the deadline")], tests="6 passed")
+    b = part("H", [run], [dict(size="large", variant="naive", steps=3000, backend="cuda", why="past the deadline")])
+    paths = []
+    for i, p in enumerate((a, b)):
+        paths.append(tmp_path / f"{i}.json")
+        paths[-1].write_text(json.dumps(p))
+    assert gpu_check.main(["--merge", *map(str, paths), "--json", str(tmp_path / "m.json"),
+                           "--plot", str(tmp_path / "m.png")]) == 0
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert [x["variant"] for x in m["runs"]] == ["blur-only", "naive"]
+    assert [x["size"] for x in m["skipped"]] == ["large"]  # small naive ran in the second part
+    assert m["gpu_tests"]["summary"] == "6 passed" and m["kernels"]["seconds"] == 50.0 and len(m["parts"]) == 2
+    paths[1].write_text(json.dumps(part("other GPU", [run], [])))
+    with pytest.raises(SystemExit, match="different GPUs"):
+        gpu_check.merge(paths)

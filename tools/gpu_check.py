@@ -1,16 +1,22 @@
 """The GPU check: run on a machine with a CUDA GPU and no network, with ev3dgs and gsplat carried as wheels.
 
     python tools/gpu_check.py --wheels WHEELDIR [--scene-small S.h5 --scene-large L.h5] [--steps 3000 30000]
+                              [--deadline-minutes M] [--cpu-baseline-steps N]
 
 1. environment: python, torch and its CUDA, the GPU's name, nvcc and ninja (gsplat compiles its kernels on first
    use: nvcc and ninja must be on PATH);
 2. with --wheels: ``pip install --no-index --find-links WHEELDIR ev3dgs[cuda]`` (nothing from the network;
    WHEELDIR holds the ev3dgs wheel, gsplat's and every dependency the machine lacks);
-3. the tests marked ``gpu`` (tests/test_gsplat_parity.py: the real kernels against the reference backend and
-   against gsplat's torch emulation), with pytest;
-4. training on the cuda backend, timed: each scene (96x72 and 346x260; without --scene-* a synthetic blob
-   scene of that size is made, no Blender needed) x each variant (naive / blur-only / blur+event) x each step
-   count, then PSNR on the sharp test views; written to tools/results/gpu_<gpu name>.json.
+3. gsplat's kernels built (or loaded from torch's extension cache), timed;
+4. the tests marked ``gpu`` (the real kernels against the reference backend and against gsplat's torch
+   emulation; training on the cuda backend against the cpu backend), with pytest;
+5. training on the cuda backend, timed: each step count x each scene (96x72 and 346x260; without --scene-* a
+   synthetic blob scene of that size is made, no Blender needed) x each variant (naive / blur-only /
+   blur+event), then PSNR on the sharp test views; with --cpu-baseline-steps the cpu backend is timed first
+   on the same scenes and machine (the first variant given), so the speed-up is a ratio inside one run. Written to
+   tools/results/gpu_<gpu name>.json after every run (a run that fails is recorded with its error and the rest
+   go on). With --deadline-minutes a run that would end past the deadline is cut there: it is scored at the
+   step it reached (``steps_done`` < ``steps``, ``cut_by_deadline``), and later runs are skipped.
 
 ``--dry-run`` checks the same path on the CPU (cpu backend, a few steps, a small synthetic scene, no install)
 and writes the JSON marked ``"dry_run": true``: tests/test_gpu_check.py runs it.
@@ -30,11 +36,17 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+import traceback  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SIZES = {"small": (96, 72), "large": (346, 260)}
 VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict()}
+GPU_TESTS = ("test_gsplat_parity.py", "test_gpu_train.py")
+
+
+class DeadlineReached(Exception):
+    """Raised from the step callback when the check's deadline has passed."""
 
 
 def environment() -> dict:
@@ -76,9 +88,10 @@ def synthetic_scene(path: Path, width: int, height: int, views: int = 6, subfram
 
 
 def time_training(scene: str, variant: str, steps: int, device: str, backend: str, init_points: int,
-                  workdir: Path) -> dict:
-    """Train one variant for `steps` steps; wall time of the fit (ms/step over the steps after the first, whose
-    time includes kernel compilation / loading), then PSNR/SSIM on the sharp test views."""
+                  workdir: Path, deadline: float | None = None) -> dict:
+    """Train one variant for `steps` steps (cut at `deadline`, a time.perf_counter() value); wall time of the
+    fit (ms/step over the steps after the first, whose time includes kernel compilation / loading), then
+    PSNR/SSIM on the sharp test views."""
     import torch
 
     from ev3dgs.train.config import TrainConfig
@@ -87,7 +100,7 @@ def time_training(scene: str, variant: str, steps: int, device: str, backend: st
 
     cfg = TrainConfig(scene=scene, iterations=steps, init_points=init_points, seed=0, device=device, backend=backend,
                       checkpoint_every=max(steps, 1), **VARIANTS[variant])
-    run = workdir / f"{Path(scene).stem}_{variant}_{steps}"
+    run = workdir / f"{Path(scene).stem}_{variant}_{steps}_{backend}"
     marks = {}
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
 
@@ -96,26 +109,49 @@ def time_training(scene: str, variant: str, steps: int, device: str, backend: st
         marks.setdefault("first", time.perf_counter())
         marks["last"] = time.perf_counter()
         marks["gaussians"] = len(tr.model)
+        marks["steps"] = tr.step
+        if deadline is not None and marks["last"] > deadline and tr.step < steps:
+            raise DeadlineReached
 
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
     trainer = Trainer(cfg, run, quiet=True)
-    trainer.fit(on_step=on_step)
+    cut = False
+    try:
+        trainer.fit(on_step=on_step)
+    except DeadlineReached:
+        cut = True
+        trainer.save_model()  # score the model at the step it reached
     fit = time.perf_counter() - t0
     m = evaluate(run, write_images=False, device=device)
-    out = {"variant": variant, "steps": steps, "fit_seconds": fit,
-           "first_step_seconds": marks["first"] - t0,
-           "ms_per_step": 1e3 * (marks["last"] - marks["first"]) / max(1, steps - 1),
+    done = marks["steps"]
+    out = {"variant": variant, "backend": backend, "steps": steps, "steps_done": done, "cut_by_deadline": cut,
+           "fit_seconds": fit, "first_step_seconds": marks["first"] - t0,
+           "ms_per_step": 1e3 * (marks["last"] - marks["first"]) / max(1, done - 1),
            "gaussians": marks["gaussians"], "test_psnr": m["test"]["psnr"], "test_ssim": m["test"]["ssim"]}
     if device == "cuda":
         out["peak_gpu_memory_mib"] = torch.cuda.max_memory_allocated() / 2**20
     return out
 
 
+def build_kernels() -> dict:
+    """Import gsplat's compiled extension: the first time on a machine this compiles it (nvcc, ninja;
+    MAX_JOBS parallel jobs, TORCH_CUDA_ARCH_LIST or the present GPU's architecture), later it loads it."""
+    t0 = time.perf_counter()
+    try:
+        from gsplat.cuda._backend import _C
+
+        ok, err = _C is not None, None if _C is not None else "gsplat built no extension (no CUDA toolkit?)"
+    except Exception as e:  # noqa: BLE001
+        ok, err = False, f"{type(e).__name__}: {e}"
+    return {"ok": ok, "error": err, "seconds": time.perf_counter() - t0, "max_jobs": os.environ.get("MAX_JOBS"),
+            "arch_list": os.environ.get("TORCH_CUDA_ARCH_LIST")}
+
+
 def run_gpu_tests(dry_run: bool) -> dict:
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "gpu", "-o", "addopts=",
-           str(REPO / "tests" / "test_gsplat_parity.py")]
+           *[str(REPO / "tests" / f) for f in GPU_TESTS]]
     t0 = time.perf_counter()
     res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     tail = (res.stdout + res.stderr).strip().splitlines()[-1:] or [""]
@@ -129,6 +165,76 @@ def gpu_slug(name: str) -> str:
     return re.sub(r"[^a-z0-9]+", "_", name.lower()).strip("_") or "gpu"
 
 
+def write_json(path: Path, result: dict) -> None:
+    """Atomically: a check killed mid-write leaves the previous complete file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(result, indent=2))
+    os.replace(tmp, path)
+
+
+def plan_runs(steps, sizes, variants, cpu_baseline_steps: int) -> list[tuple[str, str, int, str]]:
+    """(size, variant, steps, backend): first the cpu-backend baseline of the first variant (a few steps per
+    size), then the cuda runs, shortest step count first, variants in the order given, so a deadline cuts
+    the last ones."""
+    runs = [(size, variants[0], cpu_baseline_steps, "cpu") for size in sizes] if cpu_baseline_steps else []
+    return runs + [(size, v, n, "cuda") for n in sorted(steps) for v in variants for size in sizes]
+
+
+def merge(paths) -> dict:
+    """One result from several invocations on the same GPU (a check run in parts): the runs of all, in order;
+    the last invocation's tests and kernel build that ran them; each part's command-line facts kept."""
+    parts = [json.loads(Path(p).read_text()) for p in paths]
+    gpus = {r["gpu"] for r in parts}
+    if len(gpus) != 1:
+        raise SystemExit(f"--merge: the files come from different GPUs ({', '.join(sorted(gpus))})")
+    out = dict(parts[0])
+    out["runs"] = [x for r in parts for x in r["runs"]]
+    done = {(x["size"], x["variant"], x["steps"], x["backend"]) for x in out["runs"]
+            if "error" not in x and not x.get("cut_by_deadline")}
+    out["skipped"] = [x for r in parts for x in r.get("skipped", [])
+                      if (x["size"], x["variant"], x["steps"], x["backend"]) not in done]
+    tested = [r for r in parts if "gpu_tests" in r]
+    if tested:
+        out["gpu_tests"] = tested[-1]["gpu_tests"]
+    out["kernels"] = max((r["kernels"] for r in parts if "kernels" in r), key=lambda k: k["seconds"], default=None)
+    out["parts"] = [{k: r.get(k) for k in ("steps", "variants", "deadline_minutes", "seconds")} for r in parts]
+    return out
+
+
+def plot(result: dict, path: Path) -> None:
+    """ms/step (bars, log scale) and test PSNR per image size and variant, cuda beside the cpu baseline."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [r for r in result["runs"] if "error" not in r]
+    keys = sorted({(r["width"], r["height"]) for r in runs})
+    series = sorted({(r["backend"], r["variant"], r["steps"]) for r in runs}, key=lambda k: (k[0] != "cpu", k))
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    width = 0.8 / max(1, len(series))
+    for j, (be, v, n) in enumerate(series):
+        pts = [next((r for r in runs if (r["width"], r["height"]) == k and (r["backend"], r["variant"], r["steps"])
+                     == (be, v, n) and not r.get("cut_by_deadline")), None) for k in keys]
+        xs = [i + (j - (len(series) - 1) / 2) * width for i in range(len(keys))]
+        label = f"{be} {v}, {n} steps"
+        ax[0].bar(xs, [r["ms_per_step"] if r else 0 for r in pts], width, label=label, color=f"C{j}")
+        if be != "cpu":  # a few baseline steps say nothing about the fit
+            ax[1].bar(xs, [r["test_psnr"] if r else 0 for r in pts], width, label=label, color=f"C{j}")
+    for a, ylabel in zip(ax, ("ms per step", "test PSNR (dB)")):
+        a.set_xticks(range(len(keys)), [f"{w}x{h}" for w, h in keys])
+        a.set_ylabel(ylabel)
+    ax[0].set_yscale("log")
+    ax[1].set_ylim(bottom=min([r["test_psnr"] for r in runs if r["backend"] != "cpu"] or [10]) - 3)
+    ax[0].legend(fontsize=7)
+    fig.suptitle(f"ev3dgs training on {result['gpu']} (gsplat {result['environment'].get('gsplat')}, "
+                 f"torch {result['environment']['torch']})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--wheels", help="folder of wheels to install from with --no-index (ev3dgs, gsplat, missing deps)")
@@ -136,13 +242,35 @@ def main(argv=None) -> int:
     ap.add_argument("--scene-large", help="346x260 scene file (default: a synthetic one)")
     ap.add_argument("--steps", type=int, nargs="+", help="step counts (default 3000 30000; dry run 3)")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
     ap.add_argument("--init-points", type=int, default=20000)
+    ap.add_argument("--cpu-baseline-steps", type=int, default=0,
+                    help="first time the cpu backend for this many steps per scene, with the first variant given (the "
+                         "speed-up as a ratio measured on the same machine)")
+    ap.add_argument("--deadline-minutes", type=float,
+                    help="stop training at this many minutes after the start: the run in progress is scored at the "
+                         "step it reached, later runs are skipped")
     ap.add_argument("--skip-tests", action="store_true", help="do not run the gpu-marked tests")
     ap.add_argument("--json", help="output (default tools/results/gpu_<gpu name>.json)")
     ap.add_argument("--dry-run", action="store_true",
                     help="CPU path: no install, cpu backend, 3 steps (unless --steps), small synthetic scenes")
     ap.add_argument("--workdir", help="where scenes and runs go (default: a temporary folder)")
+    ap.add_argument("--plot", help="also draw ms/step and PSNR per size and variant to this PNG")
+    ap.add_argument("--merge", nargs="+", metavar="JSON",
+                    help="combine the results of several invocations on the same GPU into --json (and --plot); "
+                         "runs nothing")
     args = ap.parse_args(argv)
+    if args.merge:
+        if not args.json:
+            ap.error("--merge needs --json")
+        result = merge(args.merge)
+        write_json(Path(args.json), result)
+        if args.plot:
+            plot(result, Path(args.plot))
+        print(f"wrote {args.json}")
+        return 0
+    start = time.perf_counter()
+    deadline = None if args.deadline_minutes is None else start + 60 * args.deadline_minutes
 
     if args.wheels and not args.dry_run:
         cmd = install_command(args.wheels)
@@ -159,15 +287,26 @@ def main(argv=None) -> int:
             return 2
     device, backend = ("cpu", "cpu") if args.dry_run else ("cuda", "cuda")
     steps = args.steps or ([3] if args.dry_run else [3000, 30000])
+    out = Path(args.json or REPO / "tools" / "results" / f"gpu_{gpu_slug(env.get('gpu', 'dry_run'))}.json")
     result = {"dry_run": args.dry_run, "environment": env, "gpu": env.get("gpu", "none (dry run)"),
-              "device": device, "backend": backend, "steps": steps, "variants": args.variants}
+              "device": device, "backend": backend, "steps": steps, "variants": args.variants,
+              "deadline_minutes": args.deadline_minutes, "runs": [], "skipped": []}
+    if not args.dry_run:
+        result["kernels"] = build_kernels()
+        print("gsplat kernels:", result["kernels"], flush=True)
+        write_json(out, result)
     if not args.skip_tests:
         result["gpu_tests"] = run_gpu_tests(args.dry_run)
         print("gpu tests:", result["gpu_tests"]["summary"], flush=True)
+        write_json(out, result)
+    failures = 0
     with tempfile.TemporaryDirectory() as tmp:
+        from ev3dgs import schema
+
         work = Path(args.workdir or tmp)
         scenes = {}
-        for key, (w, h) in SIZES.items():
+        for key in args.sizes:
+            w, h = SIZES[key]
             given = getattr(args, f"scene_{key}")
             if given:
                 scenes[key] = given
@@ -176,27 +315,38 @@ def main(argv=None) -> int:
                 scenes[key] = str(synthetic_scene(work / f"blobs_{ww}x{hh}.h5", ww, hh,
                                                   views=3 if args.dry_run else 6))
         init_points = 500 if args.dry_run else args.init_points
-        runs = []
-        for key, scene in scenes.items():
-            from ev3dgs import schema
-
+        for key, variant, n, be in plan_runs(steps, list(scenes), args.variants, args.cpu_baseline_steps):
+            scene, dev = scenes[key], device if be == "cuda" else "cpu"
+            be = backend if be == "cuda" else "cpu"
+            if deadline is not None and time.perf_counter() >= deadline:
+                result["skipped"].append({"size": key, "variant": variant, "steps": n, "backend": be,
+                                          "why": "past the deadline"})
+                continue
             cam = schema.read(scene).camera
-            for n in steps:
-                for variant in args.variants:
-                    r = time_training(scene, variant, n, device, backend, init_points, work / "runs")
-                    r.update(scene=Path(scene).name, size=key, width=cam.width, height=cam.height)
-                    runs.append(r)
-                    print(f"{cam.width}x{cam.height} {variant:10s} {n:6d} steps: {r['ms_per_step']:8.2f} ms/step, "
-                          f"{r['fit_seconds']:7.1f} s, {r['gaussians']} Gaussians, test PSNR {r['test_psnr']:.2f} dB",
-                          flush=True)
-        result["runs"] = runs
-    out = Path(args.json or REPO / "tools" / "results" / f"gpu_{gpu_slug(env.get('gpu', 'dry_run'))}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
+            try:
+                r = time_training(scene, variant, n, dev, be, init_points, work / "runs", deadline)
+            except Exception as e:  # noqa: BLE001 - recorded, and the other runs go on
+                failures += 1
+                r = {"variant": variant, "backend": be, "steps": n,
+                     "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()[-3000:]}
+                print(f"{cam.width}x{cam.height} {variant} {n} steps ({be}) FAILED: {r['error']}", flush=True)
+            else:
+                cut = f" (cut at step {r['steps_done']})" if r["cut_by_deadline"] else ""
+                print(f"{cam.width}x{cam.height} {be:4s} {variant:10s} {n:6d} steps{cut}: {r['ms_per_step']:8.2f} "
+                      f"ms/step, {r['fit_seconds']:7.1f} s, {r['gaussians']} Gaussians, test PSNR "
+                      f"{r['test_psnr']:.2f} dB", flush=True)
+            r.update(scene=Path(scene).name, size=key, width=cam.width, height=cam.height)
+            result["runs"].append(r)
+            write_json(out, result)
+    result["seconds"] = time.perf_counter() - start
+    write_json(out, result)
+    if args.plot:
+        plot(result, Path(args.plot))
     print(f"wrote {out}")
     # pytest: 0 all passed/skipped, 5 nothing collected (gsplat missing: the module skips)
     tests_ok = args.skip_tests or result["gpu_tests"]["returncode"] in ((0, 5) if args.dry_run else (0,))
-    return 0 if tests_ok else 1
+    kernels_ok = args.dry_run or result["kernels"]["ok"]
+    return 0 if tests_ok and kernels_ok and not failures else 1
 
 
 if __name__ == "__main__":
