@@ -115,3 +115,11 @@ def test_merge_keeps_every_run_and_drops_skips_a_later_part_ran(tmp_path):
     paths[1].write_text(json.dumps(part("other GPU", [run], [])))
     with pytest.raises(SystemExit, match="different GPUs"):
         gpu_check.merge(paths)
+
+
+@pytest.mark.parametrize("bad", [["--steps", "0"], ["--deadline-minutes", "-1"], ["--cpu-baseline-steps", "-2"],
+                                 ["--init-points", "0"]])
+def test_impossible_parameters_exit_2(bad, capsys):
+    with pytest.raises(SystemExit) as e:
+        gpu_check.main(["--dry-run", *bad])
+    assert e.value.code == 2 and "must be" in capsys.readouterr().err

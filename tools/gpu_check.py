@@ -260,6 +260,9 @@ def main(argv=None) -> int:
                     help="combine the results of several invocations on the same GPU into --json (and --plot); "
                          "runs nothing")
     args = ap.parse_args(argv)
+    if (args.deadline_minutes is not None and args.deadline_minutes < 0) or args.cpu_baseline_steps < 0 \
+            or any(n < 1 for n in args.steps or [1]) or args.init_points < 1:
+        ap.error("--steps and --init-points must be >= 1, --deadline-minutes and --cpu-baseline-steps >= 0")
     if args.merge:
         if not args.json:
             ap.error("--merge needs --json")
