@@ -113,8 +113,12 @@ def test_merge_keeps_every_run_and_drops_skips_a_later_part_ran(tmp_path):
     assert [x["size"] for x in m["skipped"]] == ["large"]  # small naive ran in the second part
     assert m["gpu_tests"]["summary"] == "6 passed" and m["kernels"]["seconds"] == 50.0 and len(m["parts"]) == 2
     paths[1].write_text(json.dumps(part("other GPU", [run], [])))
-    with pytest.raises(SystemExit, match="different GPUs"):
-        gpu_check.merge(paths)
+    assert gpu_check.main(["--merge", *map(str, paths), "--json", str(tmp_path / "x.json")]) == 2
+    paths[1].write_text("{not json")
+    assert gpu_check.main(["--merge", *map(str, paths), "--json", str(tmp_path / "x.json")]) == 2
+    paths[1].write_text(json.dumps({"gpu": "H"}))  # not a check's result
+    assert gpu_check.main(["--merge", *map(str, paths), "--json", str(tmp_path / "x.json")]) == 2
+    assert not (tmp_path / "x.json").exists()
 
 
 @pytest.mark.parametrize("bad", [["--steps", "0"], ["--deadline-minutes", "-1"], ["--cpu-baseline-steps", "-2"],

@@ -187,7 +187,7 @@ def merge(paths) -> dict:
     parts = [json.loads(Path(p).read_text()) for p in paths]
     gpus = {r["gpu"] for r in parts}
     if len(gpus) != 1:
-        raise SystemExit(f"--merge: the files come from different GPUs ({', '.join(sorted(gpus))})")
+        raise ValueError(f"the files come from different GPUs ({', '.join(sorted(gpus))})")
     out = dict(parts[0])
     out["runs"] = [x for r in parts for x in r["runs"]]
     done = {(x["size"], x["variant"], x["steps"], x["backend"]) for x in out["runs"]
@@ -266,7 +266,11 @@ def main(argv=None) -> int:
     if args.merge:
         if not args.json:
             ap.error("--merge needs --json")
-        result = merge(args.merge)
+        try:
+            result = merge(args.merge)
+        except (OSError, ValueError, KeyError, TypeError) as e:  # unreadable, not JSON, not a check's result
+            print(f"--merge: {e if isinstance(e, ValueError) else f'{type(e).__name__}: {e}'}", file=sys.stderr)
+            return 2
         write_json(Path(args.json), result)
         if args.plot:
             plot(result, Path(args.plot))
