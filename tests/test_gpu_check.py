@@ -28,9 +28,15 @@ def test_dry_run_writes_the_json(tmp_path, capsys):
     assert {(x["width"], x["height"]) for x in runs} == {(24, 18), (86, 65)}  # a quarter of 96x72, 346x260
 
 
-def test_install_command_never_reaches_the_network():
+def test_install_command_never_reaches_the_network(tmp_path):
     cmd = gpu_check.install_command("/wheels")
     assert "--no-index" in cmd and cmd[cmd.index("--find-links") + 1] == "/wheels" and cmd[-1] == "ev3dgs[cuda]"
+    for name in ("gsplat-1.5.3-py3-none-any.whl", "ev3dgs-0.2.0-cp312-cp312-linux_x86_64.whl", "notes.txt"):
+        (tmp_path / name).write_text("")
+    cmd = gpu_check.install_command(str(tmp_path), no_deps=True)
+    assert "--no-index" in cmd and "--no-deps" in cmd and "--find-links" not in cmd
+    assert [Path(c).name for c in cmd if c.endswith(".whl")] == ["ev3dgs-0.2.0-cp312-cp312-linux_x86_64.whl",
+                                                                  "gsplat-1.5.3-py3-none-any.whl"]
 
 
 def test_without_cuda_the_real_run_refuses(capsys):

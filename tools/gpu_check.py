@@ -6,7 +6,8 @@
 1. environment: python, torch and its CUDA, the GPU's name, nvcc and ninja (gsplat compiles its kernels on first
    use: nvcc and ninja must be on PATH);
 2. with --wheels: ``pip install --no-index --find-links WHEELDIR ev3dgs[cuda]`` (nothing from the network;
-   WHEELDIR holds the ev3dgs wheel, gsplat's and every dependency the machine lacks);
+   WHEELDIR holds the ev3dgs wheel, gsplat's and every dependency the machine lacks), or with --no-deps every
+   wheel in WHEELDIR as it is;
 3. gsplat's kernels built (or loaded from torch's extension cache), timed;
 4. the tests marked ``gpu`` (the real kernels against the reference backend and against gsplat's torch
    emulation; training on the cuda backend against the cpu backend), with pytest;
@@ -74,7 +75,13 @@ def environment() -> dict:
     return env
 
 
-def install_command(wheels: str) -> list[str]:
+def install_command(wheels: str, no_deps: bool = False) -> list[str]:
+    """pip, never the network: ev3dgs[cuda] resolved from the folder, or (no_deps) every wheel in it as it is,
+    for a machine whose own packages stand in for some dependencies (opencv-python-headless for
+    opencv-contrib-python-headless, say)."""
+    if no_deps:
+        return [sys.executable, "-m", "pip", "install", "--no-index", "--no-deps",
+                *sorted(str(p) for p in Path(wheels).glob("*.whl"))]
     return [sys.executable, "-m", "pip", "install", "--no-index", "--find-links", str(wheels), "ev3dgs[cuda]"]
 
 
@@ -238,6 +245,8 @@ def plot(result: dict, path: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--wheels", help="folder of wheels to install from with --no-index (ev3dgs, gsplat, missing deps)")
+    ap.add_argument("--no-deps", action="store_true",
+                    help="with --wheels: install every wheel in the folder without resolving dependencies")
     ap.add_argument("--scene-small", help="96x72 scene file (default: a synthetic one)")
     ap.add_argument("--scene-large", help="346x260 scene file (default: a synthetic one)")
     ap.add_argument("--steps", type=int, nargs="+", help="step counts (default 3000 30000; dry run 3)")
@@ -280,7 +289,7 @@ def main(argv=None) -> int:
     deadline = None if args.deadline_minutes is None else start + 60 * args.deadline_minutes
 
     if args.wheels and not args.dry_run:
-        cmd = install_command(args.wheels)
+        cmd = install_command(args.wheels, args.no_deps)
         print("installing:", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
     env = environment()
