@@ -173,11 +173,12 @@ def gpu_slug(name: str) -> str:
 
 
 def write_json(path: Path, result: dict) -> None:
-    """Atomically: a check killed mid-write leaves the previous complete file."""
+    """Atomically (ev3dgs.outputs.atomic_path): a check killed mid-write leaves the previous complete file."""
+    from ev3dgs.outputs import atomic_path
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=2))
 
 
 def plan_runs(steps, sizes, variants, cpu_baseline_steps: int) -> list[tuple[str, str, int, str]]:
@@ -190,7 +191,8 @@ def plan_runs(steps, sizes, variants, cpu_baseline_steps: int) -> list[tuple[str
 
 def merge(paths) -> dict:
     """One result from several invocations on the same GPU (a check run in parts): the runs of all, in order;
-    the last invocation's tests and kernel build that ran them; each part's command-line facts kept."""
+    the skips no later part made up for; the last invocation's tests; the longest kernel build (the compile,
+    not a later part's load of the cached build); each part's settings and duration."""
     parts = [json.loads(Path(p).read_text()) for p in paths]
     gpus = {r["gpu"] for r in parts}
     if len(gpus) != 1:
@@ -332,8 +334,8 @@ def main(argv=None) -> int:
                                                   views=3 if args.dry_run else 6))
         init_points = 500 if args.dry_run else args.init_points
         for key, variant, n, be in plan_runs(steps, list(scenes), args.variants, args.cpu_baseline_steps):
-            scene, dev = scenes[key], device if be == "cuda" else "cpu"
-            be = backend if be == "cuda" else "cpu"
+            scene = scenes[key]
+            dev, be = (device, backend) if be == "cuda" else ("cpu", "cpu")  # the dry run: cpu for both
             if deadline is not None and time.perf_counter() >= deadline:
                 result["skipped"].append({"size": key, "variant": variant, "steps": n, "backend": be,
                                           "why": "past the deadline"})
