@@ -99,15 +99,13 @@ def _job(job: dict) -> dict:
 
 
 def summarise(runs: list[dict]) -> dict:
-    out: dict = {}
+    """{kind: study_attribution's per-variant summary of that kind's runs, plus the learned curves' errors}."""
+    from study_attribution import summarise as per_variant
+
+    out = {kind: per_variant([r for r in runs if r["kind"] == kind]) for kind in dict.fromkeys(r["kind"] for r in runs)}
     for r in runs:
-        d = out.setdefault(r["kind"], {}).setdefault(r["variant"], {"blur_view": [], "novel_view": [], "seeds": [],
-                                                                    "train_s": []})
-        for view in ("blur_view", "novel_view"):
-            d[view].append(r["metrics"][view]["psnr"])
-        d["seeds"].append(r["seed"])
-        d["train_s"].append(r["metrics"].get("train_seconds", float("nan")))
         if "response" in r:
+            d = out[r["kind"]][r["variant"]]
             for k in ("max_error", "max_error_below_half", "max_error_from_half", "max_error_at_start"):
                 d.setdefault(f"response_{k}", []).append(r["response"][k])
     return out
