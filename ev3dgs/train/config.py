@@ -92,10 +92,9 @@ class TrainConfig:
         check(0 <= self.event_pairs <= n_pairs,
               f"--event-pairs must be in [0, {n_pairs}] ({self.subposes} sub-poses have {n_pairs} pairs)")
         check(self.blur_space in ("auto", "srgb", "linear"), "--blur-space must be auto, srgb or linear")
-        check(not (self.hdr and self.blur_space == "srgb"),
-              "--hdr needs the linear-light blur model, not --blur-space srgb")
-        check(not (self.learn_response and self.blur_space == "srgb"),
-              "--learn-response needs the linear-light blur model, not --blur-space srgb")
+        for flag, on in (("--hdr", self.hdr), ("--learn-response", self.learn_response)):
+            check(not (on and self.blur_space == "srgb"),
+                  f"{flag} needs the linear-light blur model, not --blur-space srgb")
         check(not (self.learn_response and (self.oracle or self.naive)),
               "--learn-response needs the blur model (a sharp frame's decode and encode cancel): not with "
               "--oracle or --naive")
