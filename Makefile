@@ -91,7 +91,7 @@ study-attribution: setup
 		--json tools/results/study_attribution_sh.json
 	$(BIN)/python tools/studies/study_attribution.py --scene lowlight --theta 0.2 --mismatch 0.15 --samples 16 \
 		--variants naive blur-only blur+event oracle oracle-noisy info-oracle blur-ideal@17 blur-clean@17 \
-		blur-only@17 --cache tools/results/attribution_cache_lowlight \
+		blur-only@17 blur-clean naive-clean --cache tools/results/attribution_cache_lowlight \
 		--json tools/results/study_attribution_lowlight.json --plot tools/results/study_attribution_lowlight.png
 
 # a camera with a tone curve the scene does not declare, and --learn-response (heldout_shake at theta 0.05; shares

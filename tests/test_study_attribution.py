@@ -243,3 +243,37 @@ def test_response_study_tone_scene_curves_every_frame_and_keeps_the_rest(tmp_pat
     assert b.train.transfer == "srgb"       # the file still declares sRGB: the curve is the camera's secret
     mtime = out.stat().st_mtime_ns
     assert sr.tone_scene(cell, 1.5, out) == out and out.stat().st_mtime_ns == mtime   # made once
+
+
+def test_band_split_of_white_noise_follows_the_low_pass_kernels_energy():
+    """An error of white noise (variance s²) leaves s²·Σk² in the low-pass part and s²·Σ(δ − k)² =
+    s²·(1 − 2k(0) + Σk²) in the rest, with the 2-D Gaussian kernel's Σk² = κ = 1 / (4πσ²) and centre
+    k(0) = 1 / (2πσ²) = 2κ: s²·κ and s²·(1 − 3κ) (continuous forms; the sampled kernel differs by far less
+    than the tolerance at σ = 1.5). Tolerances: the low-pass noise is correlated over about 4πσ² ≈ 28 px,
+    so 400 x 400 x 3 samples are worth ~17 000 independent ones, a relative spread of sqrt(2 / 17 000) ≈ 1.1 %;
+    the reflected border (3 % of the pixels within 2σ of it) adds up to 3 %: 10 % on the low part, 2 % on the
+    high part (its samples are nearly independent). The truth is white noise too (variance t²), so the
+    renders' fine detail is (t² + s²)(1 − 3κ) against t²(1 − 3κ): a ratio of 1 + s²/t²."""
+    rng = np.random.default_rng(7)
+    s, t = 0.05, 0.1
+    truth = rng.normal(0.5, t, (1, 400, 400, 3))
+    pred = truth + rng.normal(0.0, s, truth.shape)
+    out = sa.band_split(pred, truth, sigma=1.5)
+    kappa = 1.0 / (4 * np.pi * 1.5 ** 2)
+    assert 10 ** (-out["low_psnr"] / 10) == pytest.approx(s ** 2 * kappa, rel=0.10)
+    assert 10 ** (-out["high_psnr"] / 10) == pytest.approx(s ** 2 * (1 - 3 * kappa), rel=0.02)
+    assert out["fine_energy_ratio"] == pytest.approx(1 + s ** 2 / t ** 2, rel=0.02)
+
+
+def test_band_split_puts_a_smooth_error_in_the_low_part_and_a_blurred_render_below_one():
+    """A constant offset is all low-pass (the Gaussian keeps a constant; reflected borders too); a render that
+    is the truth blurred has less fine detail than the truth."""
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0, 1, (2, 40, 50, 3))
+    out = sa.band_split(truth + 0.01, truth)
+    assert out["low_psnr"] == pytest.approx(40.0, abs=1e-6)
+    assert out["high_psnr"] > 200        # rounding only
+    blurred = np.stack([gaussian_filter(im, (2, 2, 0)) for im in truth])
+    assert sa.band_split(blurred, truth)["fine_energy_ratio"] < 0.2

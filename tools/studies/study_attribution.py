@@ -19,7 +19,10 @@ trained under variants that each remove one cause of error, on the same frames, 
 * ``blur+event`` (5 sub-poses), ``blur+event@17`` and ``blur+event@4pairs`` (4 random pose pairs per step
   instead of all 10) at one threshold cell (default 0.05 with 10 % relative mismatch): what the events add, what
   more sub-poses add to them, and what the pair selection costs;
-* ``naive``: plain 3DGS on the blurry frame at the mid pose (for comparison, no step of the table);
+* ``naive``: plain 3DGS on the blurry frame at the mid pose; with ``blur-only`` it says what the blur model adds
+  over fitting the blurry frame as if it were sharp;
+* noisy scenes also add ``blur-clean`` and ``naive-clean`` (5 sub-poses, and naive, on the noise-free blurry
+  frames): whether the blur model's edge over naive depends on the frame noise;
 * ``*@3000``: blur-only, blur+event and the oracle at 3x the steps (first seed only): the optimisation length.
 
 The threshold and mismatch (quantisation) costs come from ``study_event_term.py`` on the same frames. Scenes are
@@ -62,7 +65,9 @@ VARIANTS = {
     "blur-clean@17": ("clean", dict(event_loss=False, subposes=SUBFRAMES), 1, False),
     "blur-only@17": ("free", dict(event_loss=False, subposes=SUBFRAMES), 1, False),
     "blur-only": ("free", dict(event_loss=False), 1, False),
+    "blur-clean": ("clean", dict(event_loss=False), 1, False),
     "naive": ("free", dict(naive=True), 1, False),
+    "naive-clean": ("clean", dict(naive=True), 1, False),
     "blur+event": ("cell", dict(event_norm="noise"), 1, False),
     "blur+event@17": ("cell", dict(event_norm="noise", subposes=SUBFRAMES), 1, False),
     "blur+event@4pairs": ("cell", dict(event_norm="noise", event_pairs=4), 1, False),
@@ -81,6 +86,10 @@ STEPS = [
     ("frame noise in the blurry frames (17 sub-poses)", "blur-clean@17", "blur-only@17"),
     ("blur model and frame noise against the ideal one", "blur-ideal@17", "blur-only@17"),
     ("5 sub-poses instead of 17 (blur-only)", "blur-only@17", "blur-only"),
+    ("frame noise in the blurry frames (5 sub-poses)", "blur-clean", "blur-only"),
+    ("frame noise in the blurry frames (naive)", "naive-clean", "naive"),
+    ("blur model instead of naive, noisy frames", "naive", "blur-only"),
+    ("blur model instead of naive, noise-free frames", "naive-clean", "blur-clean"),
     ("no events (5 sub-poses)", "blur+event", "blur-only"),
     ("no events (17 sub-poses)", "blur+event@17", "blur-only@17"),
     ("5 sub-poses instead of 17 (blur+event)", "blur+event@17", "blur+event"),
@@ -176,6 +185,44 @@ def blur_model_residual(cell: Path, ideal: Path) -> dict:
             "share_saturated": float(d2[(real >= 255).any(axis=-1)].sum() / total)}
 
 
+BAND_SIGMA = 1.5   # px: the Gaussian low-pass that splits an error into coarse and fine detail
+
+
+def band_split(pred: np.ndarray, truth: np.ndarray, sigma: float = BAND_SIGMA) -> dict:
+    """Where renders ``pred`` differ from ``truth`` ((N, H, W, 3), any range, same scale): the PSNR (peak 1) of
+    the error's low-pass part (a Gaussian of ``sigma`` px per image and channel) and of the rest, and the fine
+    detail's energy in the renders over that in the truth (above 1: detail the truth does not have, as a model
+    that deblurs the frames' noise renders). The two parts sum to the error."""
+    from scipy.ndimage import gaussian_filter
+
+    def low(x):
+        return np.stack([gaussian_filter(im, (sigma, sigma, 0)) for im in x])
+
+    p, t = np.asarray(pred, np.float64), np.asarray(truth, np.float64)
+    err = p - t
+    lo = low(err)
+    hi_p, hi_t = p - low(p), t - low(t)
+    return {"low_psnr": float(-10 * np.log10(np.mean(lo ** 2))),
+            "high_psnr": float(-10 * np.log10(np.mean((err - lo) ** 2))),
+            "fine_energy_ratio": float(np.mean(hi_p ** 2) / np.mean(hi_t ** 2))}
+
+
+def novel_view_bands(run: Path, scene: Path) -> dict:
+    """band_split of a finished run's renders of ``scene``'s test views against them, plus its Gaussian count."""
+    import torch
+
+    from ev3dgs import schema
+    from ev3dgs.train.evaluate import load_run, render_views
+
+    cfg, model = load_run(run, "cpu", scene=scene)
+    sc = schema.read(scene)
+    bg = sc.camera.background if sc.camera.background is not None else (0, 0, 0)
+    pred = render_views(model, np.asarray(sc.test.poses), torch.as_tensor(sc.camera.K, dtype=model.dtype),
+                        sc.camera.width, sc.camera.height, torch.as_tensor(bg, dtype=model.dtype), cfg.backend)
+    return band_split(np.stack(pred) / 255.0, np.asarray(sc.test.images) / 255.0) | {
+        "gaussians": int(model.means.shape[0])}
+
+
 def _job(job: dict) -> dict:
     import torch
 
@@ -186,7 +233,9 @@ def _job(job: dict) -> dict:
     train, score = Path(job["train_scene"]), Path(job["eval_scene"])
     m = run_one(train, job["overrides"], job["seed"], job["iterations"], job["init_points"], Path(job["out"]),
                 eval_scene=None if score == train else score)
-    return {**{k: job[k] for k in ("variant", "seed")}, "metrics": m, "wall": time.perf_counter() - t}
+    bands = novel_view_bands(Path(job["out"]), score)
+    return {**{k: job[k] for k in ("variant", "seed")}, "metrics": m, "bands": bands,
+            "wall": time.perf_counter() - t}
 
 
 def summarise(runs: list[dict]) -> dict:
@@ -195,6 +244,8 @@ def summarise(runs: list[dict]) -> dict:
         d = out.setdefault(r["variant"], {"blur_view": [], "novel_view": [], "train_s": [], "seeds": []})
         for view in ("blur_view", "novel_view"):
             d[view].append(r["metrics"][view]["psnr"])
+        for k, v in r.get("bands", {}).items():   # study_response's runs have none
+            d.setdefault(k, []).append(v)
         d["train_s"].append(r["metrics"].get("train_seconds", float("nan")))
         d["seeds"].append(r["seed"])
     return out
@@ -309,8 +360,11 @@ def main(argv=None) -> int:
 
     def report(r):
         m = r["metrics"]
+        b = r["bands"]
         print(f"  {r['variant']:18s} seed {r['seed']}: blur view {m['blur_view']['psnr']:.2f}, "
-              f"novel {m['novel_view']['psnr']:.2f} dB ({r['wall']:.0f} s)", flush=True)
+              f"novel {m['novel_view']['psnr']:.2f} dB (coarse {b['low_psnr']:.2f}, fine {b['high_psnr']:.2f}; "
+              f"fine detail x{b['fine_energy_ratio']:.2f} the truth's; {b['gaussians']} Gaussians; "
+              f"{r['wall']:.0f} s)", flush=True)
 
     runs = run_parallel(_job, jobs, a.jobs, report)
     summary = summarise(runs)
