@@ -110,7 +110,7 @@ def test_training_improves_the_sharp_views(scene_path, tmp_path):
 
 @pytest.mark.parametrize("extra", [{}, {"threshold_map": True}, {"hdr": True},
                                    {"edi_prior": 0.05, "edi_anneal": 1.0}, {"subposes": 9, "subpose_px": 0.5},
-                                   {"learn_response": True, "hdr": True}])
+                                   {"learn_response": True, "hdr": True}, {"frame_noise": 80.0}])
 def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
     class Stop(Exception):
         pass
@@ -139,6 +139,27 @@ def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
         assert not torch.equal(full.response.logits, torch.zeros_like(full.response.logits))  # it was learned
         table = json.loads((tmp_path / "a" / "response.json").read_text())
         assert table["decoded_as"] == [float(v) for v in full.response.values().detach().double()]
+    if "frame_noise" in extra:
+        assert resumed.blur_mse == full.blur_mse is not None
+
+
+def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_noise(scene_path, tmp_path):
+    """--frame-noise 0 (the default) leaves the blur weight at 1, so the event weight is omega / 1.0 = omega to
+    the bit (IEEE division by 1 is exact). A noise larger than the blur term's error (80 levels: sigma^2 =
+    0.098; a 30-step fit of this scene is at 0.06) drives the weight to its bound and the run away from the
+    default; auto estimates this noise-free scene's frames at a fraction of a level (8-bit rounding, edges)."""
+    import ev3dgs.train.trainer as T
+    from ev3dgs.train.frame_noise import W_MIN
+
+    runs = {}
+    for name, fn in (("default", 0.0), ("loud", 80.0), ("auto", None)):
+        tr = Trainer(cfg(scene_path, iterations=30, frame_noise=fn), tmp_path / name, quiet=True)
+        tr.fit()
+        runs[name] = tr
+    assert runs["default"].frame_noise_var == 0.0 and runs["default"].blur_mse is None
+    assert T.blur_weight(runs["loud"].frame_noise_var, runs["loud"].blur_mse) == W_MIN
+    assert not torch.equal(runs["default"].model.params["means"], runs["loud"].model.params["means"])
+    assert 0 < runs["auto"].frame_noise_var < (1.0 / 255) ** 2
 
 
 def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_path, tmp_path):
@@ -250,7 +271,7 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
                                                                       "--event-pairs", "3", "--threshold-map", "--hdr",
                                                                       "--sh-interval", "4", "--edi-prior", "0.02",
                                                                       "--subposes", "7", "--subpose-px", "0.5"],
-                                   ["--hdr", "--learn-response", "--event-pairs", "2"],
+                                   ["--hdr", "--learn-response", "--event-pairs", "2", "--frame-noise", "auto"],
                                    pytest.param(["--refine-poses", "--subposes", "9", "--subpose-px", "0.5"],
                                                 marks=pytest.mark.slow)])
 def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
@@ -266,6 +287,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     assert saved["edi_prior"] == (0.02 if "--edi-prior" in flags else 0.0)
     assert saved["subpose_px"] == (0.5 if "--subpose-px" in flags else 0.0)
     assert saved["learn_response"] == ("--learn-response" in flags)
+    assert saved["frame_noise"] == (None if "--frame-noise" in flags else 0.0)
     assert (run / "trajectory.npz").exists() == ("--refine-poses" in flags)
     assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply")]) == 0
     assert len(load_ply(tmp_path / "m.ply")) > 0
@@ -283,6 +305,8 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     (["train", "SCENE", "--out", "X", "--edi-anneal", "0"], "edi-anneal"),
     (["train", "SCENE", "--out", "X", "--learn-response", "--naive"], "learn-response needs the blur model"),
     (["train", "SCENE", "--out", "X", "--subpose-px", "-1"], "subpose-px must be a number >= 0"),
+    (["train", "SCENE", "--out", "X", "--frame-noise", "-1"], "frame-noise must be auto or a sigma"),
+    (["train", "SCENE", "--out", "X", "--frame-noise", "loud"], "frame-noise.*expected a number"),
     (["train", "SCENE", "--out", "X", "--edi-prior", "0.1", "--no-event-loss"], "edi-prior needs the event loss"),
     (["train", "SCENE", "--out", "X", "--device", "cuda"], "CUDA|cuda"),
     (["train", "SCENE", "--out", "X", "--resume"], "no checkpoint"),

@@ -77,6 +77,11 @@ def _record_given(sub) -> None:
     sub.parse_known_args = parse_known_args
 
 
+def _frame_noise(text: str) -> float | None:
+    """argparse type of --frame-noise: "auto" (None: estimated from the frames) or a finite number."""
+    return None if text == "auto" else finite_float(text)
+
+
 def _train(args) -> int:
     _check_train(args)
     from ..train.config import TrainConfig, resume_config
@@ -88,7 +93,7 @@ def _train(args) -> int:
         scene=os.path.abspath(args.scene), iterations=args.iterations, subposes=args.subposes,
         subpose_px=args.subpose_px, event_weight=args.event_weight,
         event_norm=args.event_norm, event_mismatch=args.event_mismatch,
-        event_pairs=args.event_pairs, naive=args.naive, event_loss=not args.no_event_loss,
+        event_pairs=args.event_pairs, frame_noise=args.frame_noise, naive=args.naive, event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
         learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, hdr=args.hdr,
         learn_response=args.learn_response,
@@ -268,6 +273,11 @@ def build_parser():
     t.add_argument("--event-pairs", type=int, default=0,
                    help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs; a view "
                         "with fewer pairs (--subpose-px) uses all of them (default %(default)s)")
+    t.add_argument("--frame-noise", type=_frame_noise, default=0.0, metavar="auto|SIGMA",
+                   help="the blurry frames' noise (sigma in 8-bit levels, or auto: estimated from the frames): "
+                        "as the blur loss's error comes down to that noise, which no model should fit, the "
+                        "event loss weighs up to 16 times more; for dark, high-ISO frames "
+                        "(default %(default)s: off)")
     t.add_argument("--naive", action="store_true",
                    help="ablation: plain 3DGS on the blurry frame at the mid pose (default: off)")
     t.add_argument("--no-event-loss", action="store_true",

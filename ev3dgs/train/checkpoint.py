@@ -39,6 +39,7 @@ def save_checkpoint(path: Path, trainer) -> None:
         "scene": scene_fingerprint(trainer.data),
         "pose_refiner": None if getattr(trainer, "pose_refiner", None) is None else trainer.pose_refiner.state_dict(),
         "event_floor": getattr(trainer, "event_floor", None),
+        "blur_mse": getattr(trainer, "blur_mse", None),
         "threshold_map": (None if getattr(trainer, "threshold_map", None) is None
                           else trainer.threshold_map.state_dict()),
         "response": (None if getattr(trainer, "response", None) is None
@@ -130,4 +131,6 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
         trainer.response_opt.load_state_dict(payload["response"]["opt"])
     floor = payload.get("event_floor")   # absent in checkpoints of the count norm, which has none
     trainer.event_floor = None if floor is None else float(floor)
+    mse = payload.get("blur_mse")        # absent without --frame-noise and in older checkpoints
+    trainer.blur_mse = None if mse is None else float(mse)
     trainer.step = int(payload["step"])

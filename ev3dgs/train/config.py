@@ -12,7 +12,7 @@ from ..errors import ConfigError
 # saved, how many threads the rasterizer kernels use: results are bitwise the same for any thread count).
 RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
 # keys added after runs were saved without them, with the value those runs used (not today's default)
-LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count"}
+LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count", "frame_noise": 0.0}
 # keys of config.json that record facts about the run, not settings (TrainConfig.load skips them)
 RECORD_KEYS = ("scene_file",)
 
@@ -42,6 +42,9 @@ class TrainConfig:
     event_mismatch: float | None = None  # relative per-pixel threshold spread for the noise norm; None = the
                                       # scene's (simulated) or DEFAULT_REL_MISMATCH
     event_pairs: int = 0              # 0 = all pairs of the b+1 renders, k = k random pairs per step
+    frame_noise: float | None = 0.0   # the frames' noise sigma in 8-bit levels: the event weight grows as the
+                                      # blur term's error is that noise (frame_noise.py); None = estimated
+                                      # from the frames; 0 = off
     naive: bool = False               # plain 3DGS on the blurry frame at the mid pose
     event_loss: bool = True
     blur_space: str = "auto"          # "srgb": average stored (image) values; "linear": average in linear light;
@@ -86,6 +89,8 @@ class TrainConfig:
         check(self.event_weight is None or self.event_weight >= 0, "--event-weight must be >= 0")
         check(self.event_norm in EVENT_WEIGHTS, f"--event-norm must be one of {', '.join(EVENT_WEIGHTS)}")
         check(self.event_mismatch is None or 0 <= self.event_mismatch <= 1, "--event-mismatch must be in [0, 1]")
+        check(self.frame_noise is None or 0 <= self.frame_noise <= 255,
+              "--frame-noise must be auto or a sigma in 8-bit levels in [0, 255]")
         check(not self.threshold_map or self.event_norm == "noise",
               "--threshold-map needs --event-norm noise (its prior and weights come from the noise model)")
         n_pairs = self.subposes * (self.subposes - 1) // 2

@@ -42,6 +42,7 @@ from .config import TrainConfig
 from .data import TrainData, load_train_data
 from .edi_prior import anneal_factor, edi_prior_loss
 from .events import pair_list, pose_counts
+from .frame_noise import blur_weight, update_mse
 from .init import init_bounds
 from .losses import (average_loss, blur_average, log_intensity, noise_event_loss, pose_event_loss,
                      srgb_to_linear_hdr_torch, srgb_to_linear_torch, update_floor)
@@ -133,6 +134,8 @@ class Trainer:
         self.step = 0
         self.use_events = cfg.uses_events and self.data.bins is not None
         self.event_floor: float | None = None   # the noise norm's model floor (losses.update_floor)
+        self.frame_noise_var = self._frame_noise() if self.use_events else 0.0   # --frame-noise (frame_noise.py)
+        self.blur_mse: float | None = None      # the blur term's squared error, tracked over steps
         self.rel_mismatch, self.noise_rate_hz = self._event_noise()
         self.threshold_map = None   # --threshold-map: per-pixel thresholds (threshold_map.py)
         if cfg.threshold_map and self.use_events and self.rel_mismatch > 0:
@@ -161,6 +164,18 @@ class Trainer:
         else:
             rel = DEFAULT_REL_MISMATCH
         return float(rel), float(d.noise_rate_hz or 0.0)
+
+    def _frame_noise(self) -> float:
+        """--frame-noise: the training frames' noise variance (display values, 1 = white), given or estimated."""
+        from .frame_noise import estimate_noise
+
+        if self.cfg.frame_noise is not None:
+            return (self.cfg.frame_noise / 255.0) ** 2
+        var = estimate_noise(self.data.images.cpu().numpy())
+        if not self.quiet:
+            print(f"--frame-noise auto: the frames' noise is {255.0 * math.sqrt(var):.2f} 8-bit levels (sigma)",
+                  file=sys.stderr)
+        return var
 
     def _edi_inputs(self) -> tuple[torch.Tensor, torch.Tensor]:
         """--edi-prior: each view's (N, H, W) log intensity of the blurry frame and where the EDI target holds
@@ -278,7 +293,9 @@ class Trainer:
                                            self.noise_rate_hz, t, data.log_knee,
                                            None if tmap is None else tmap.spread)
                     loss = loss + cfg.edi_prior * fade * l_edi
-            loss = loss + cfg.omega * l_event
+            # --frame-noise: where the frames' noise is most of the blur term's error, the events weigh more
+            w_blur = blur_weight(self.frame_noise_var, self.blur_mse)
+            loss = loss + (cfg.omega / w_blur) * l_event
         loss.backward()
         self._guard(loss, l_blur, l_event)
         for opt in self.optimizers.values():
@@ -296,6 +313,9 @@ class Trainer:
         self.step += 1
         with torch.no_grad():  # the blurry frame as the loss saw it (averaged in data.blur_space)
             p = psnr(avg.detach().clamp(0, 1), target)
+            if self.frame_noise_var > 0:
+                self.blur_mse = update_mse(self.blur_mse, float(torch.mean(
+                    (avg.detach().clamp(0, 1) - target.to(avg.dtype)) ** 2)))
         return {"step": self.step, "view": v, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
                 "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info,
                 **({"edi": l_edi.item()} if self.edi is not None else {}),

@@ -1,0 +1,65 @@
+"""How noisy the training frames are, and how much that should weigh the blur term down against the events.
+
+A blurry frame's squared error against the model's blur of its sub-poses has two parts: what the model gets
+wrong, and the frame's own noise, which no model should fit. Where the frames are clean the first is all
+there is; where they carry sensor noise (a dark scene at high ISO) the second can be most of it, and a model
+that lowers the blur loss there renders the noise as detail (deblurring amplifies it). The event term is
+measured against its own noise (losses.noise_event_loss); this module puts the blur term on the same footing:
+its weight is the share of its error that the model can still fix,
+
+    w = clamp(1 - s2 / mse, W_MIN, 1),
+
+with s2 the frames' noise variance (display values, 1 = white) and mse the blur term's squared error as the
+run goes. The trainer applies it as the event weight omega / w, so a noise-free scene (s2 ~ 0) trains as
+without it and the blur term's gradients, which drive densification, keep their size.
+
+The noise is estimated from the frames themselves (``estimate_noise``), as a user's frames come without a
+noise figure: J. Immerkaer, "Fast noise variance estimation", CVIU 64(2), 1996. The 3x3 mask
+[[1, -2, 1], [-2, 4, -2], [1, -2, 1]] (the difference of two Laplacians) is zero on any constant or linear
+ramp, so a smooth image - and motion blur makes frames smooth - leaves only the noise, whose absolute response
+has mean sigma * 6 * sqrt(2 / pi) for white Gaussian noise (the mask's L2 norm is 6).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+W_MIN = 1.0 / 16.0   # the blur term keeps at least this share: the event weight grows at most 16-fold
+MSE_MOMENTUM = 0.9   # exponential average of the blur term's squared error over steps (as losses.update_floor)
+_MASK = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
+
+
+def estimate_noise(frames: np.ndarray) -> float:
+    """The noise variance of ``frames`` ((N, H, W, C) uint8 or (N, H, W[, C]) floats in [0, 1]): Immerkaer's
+    estimate per frame and channel, as a variance in display values (1 = white), averaged. Frames smaller
+    than 3x3 have none to give: 0."""
+    x = np.asarray(frames)
+    scale = 255.0 if x.dtype == np.uint8 else 1.0
+    x = x.astype(np.float64) / scale
+    if x.ndim == 3:
+        x = x[..., None]
+    if x.ndim != 4:
+        raise ValueError(f"frames must be (N, H, W) or (N, H, W, C), got shape {x.shape}")
+    n, h, w, c = x.shape
+    if h < 3 or w < 3 or n == 0:
+        return 0.0
+    # the mask's response at every interior pixel, from shifted views (a 3x3 correlation, no SciPy needed)
+    resp = sum(_MASK[i, j] * x[:, i:h - 2 + i, j:w - 2 + j, :] for i in range(3) for j in range(3))
+    sigma = math.sqrt(math.pi / 2.0) / 6.0 * np.abs(resp).mean(axis=(1, 2))   # (N, C)
+    return float(np.mean(sigma ** 2))
+
+
+def blur_weight(noise_var: float, mse: float | None) -> float:
+    """The blur term's weight w (module doc) for frames of noise variance ``noise_var`` at a tracked squared
+    error ``mse`` (None, before the first step: 1)."""
+    if noise_var <= 0 or mse is None or not math.isfinite(mse) or mse <= 0:
+        return 1.0
+    return min(1.0, max(W_MIN, 1.0 - noise_var / mse))
+
+
+def update_mse(tracked: float | None, mse: float) -> float | None:
+    """``mse`` (one step's) as an exponential average over steps; a non-finite step leaves it as it was."""
+    if not math.isfinite(mse):
+        return tracked
+    return mse if tracked is None else MSE_MOMENTUM * tracked + (1.0 - MSE_MOMENTUM) * mse
