@@ -79,7 +79,12 @@ def _record_given(sub) -> None:
 
 def _frame_noise(text: str) -> float | None:
     """argparse type of --frame-noise: "auto" (None: estimated from the frames) or a finite number."""
-    return None if text == "auto" else finite_float(text)
+    if text == "auto":
+        return None
+    try:
+        return finite_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected auto or a number, got {text!r}") from None
 
 
 def _train(args) -> int:
@@ -273,11 +278,10 @@ def build_parser():
     t.add_argument("--event-pairs", type=int, default=0,
                    help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs; a view "
                         "with fewer pairs (--subpose-px) uses all of them (default %(default)s)")
-    t.add_argument("--frame-noise", type=_frame_noise, default=0.0, metavar="auto|SIGMA",
-                   help="the blurry frames' noise (sigma in 8-bit levels, or auto: estimated from the frames): "
-                        "as the blur loss's error comes down to that noise, which no model should fit, the "
-                        "event loss weighs up to 16 times more; for dark, high-ISO frames "
-                        "(default %(default)s: off)")
+    t.add_argument("--frame-noise", type=_frame_noise, default="auto", metavar="auto|SIGMA",
+                   help="the blurry frames' noise, sigma in 8-bit levels: as the blur loss's error comes down to "
+                        "that noise, which no model should fit, the event loss weighs up to 16 times more; 0 "
+                        "turns it off (default %(default)s: estimated from the frames, 0 for clean ones)")
     t.add_argument("--naive", action="store_true",
                    help="ablation: plain 3DGS on the blurry frame at the mid pose (default: off)")
     t.add_argument("--no-event-loss", action="store_true",

@@ -42,9 +42,9 @@ class TrainConfig:
     event_mismatch: float | None = None  # relative per-pixel threshold spread for the noise norm; None = the
                                       # scene's (simulated) or DEFAULT_REL_MISMATCH
     event_pairs: int = 0              # 0 = all pairs of the b+1 renders, k = k random pairs per step
-    frame_noise: float | None = 0.0   # the frames' noise sigma in 8-bit levels: the event weight grows as the
-                                      # blur term's error is that noise (frame_noise.py); None = estimated
-                                      # from the frames; 0 = off
+    frame_noise: float | None = None  # the frames' noise sigma in 8-bit levels: the event weight grows as the
+                                      # blur term's error comes down to that noise (frame_noise.py); None =
+                                      # estimated from the frames; 0 = off
     naive: bool = False               # plain 3DGS on the blurry frame at the mid pose
     event_loss: bool = True
     blur_space: str = "auto"          # "srgb": average stored (image) values; "linear": average in linear light;

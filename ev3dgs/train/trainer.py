@@ -166,16 +166,13 @@ class Trainer:
         return float(rel), float(d.noise_rate_hz or 0.0)
 
     def _frame_noise(self) -> float:
-        """--frame-noise: the training frames' noise variance (display values, 1 = white), given or estimated."""
+        """--frame-noise: the training frames' noise variance (display values, 1 = white), given or estimated
+        (log.jsonl records it as sigma in 8-bit levels, with the event weight it sets, where it is above 0)."""
         from .frame_noise import estimate_noise
 
         if self.cfg.frame_noise is not None:
             return (self.cfg.frame_noise / 255.0) ** 2
-        var = estimate_noise(self.data.images.cpu().numpy())
-        if not self.quiet:
-            print(f"--frame-noise auto: the frames' noise is {255.0 * math.sqrt(var):.2f} 8-bit levels (sigma)",
-                  file=sys.stderr)
-        return var
+        return estimate_noise(self.data.images.cpu().numpy())
 
     def _edi_inputs(self) -> tuple[torch.Tensor, torch.Tensor]:
         """--edi-prior: each view's (N, H, W) log intensity of the blurry frame and where the EDI target holds
@@ -265,6 +262,7 @@ class Trainer:
         l_blur = average_loss(avg, target, cfg.ssim_lambda, clip=cfg.hdr)
         loss = l_blur
         l_event = l_edi = torch.zeros((), device=self.device)
+        w_blur = 1.0
         if self.use_events:
             n_pairs = k * (k - 1) // 2  # --event-pairs N: N random pairs, all of them where a view has fewer
             pairs = pair_list(k, cfg.event_pairs if 0 < cfg.event_pairs <= n_pairs else "all", self.pair_generator)
@@ -319,7 +317,9 @@ class Trainer:
         return {"step": self.step, "view": v, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
                 "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info,
                 **({"edi": l_edi.item()} if self.edi is not None else {}),
-                **({"subposes": k} if data.n_sub is not None else {})}
+                **({"subposes": k} if data.n_sub is not None else {}),
+                **({"event_weight": cfg.omega / w_blur, "frame_noise": 255.0 * math.sqrt(self.frame_noise_var)}
+                   if self.frame_noise_var > 0 else {})}
 
     def trained_parameters(self) -> list[torch.Tensor]:
         """Every tensor a step updates: the Gaussians, the learned thresholds and whatever any optimizer of

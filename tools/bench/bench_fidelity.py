@@ -57,8 +57,8 @@ VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blu
             # a learned camera response before the sRGB decode (--learn-response), alone and with --hdr
             "blur+event-response": dict(learn_response=True),
             "blur+event-hdr-response": dict(hdr=True, learn_response=True),
-            # the events weigh more as the blur loss's error comes down to the frames' noise (--frame-noise auto)
-            "blur+event-noise": dict(frame_noise=None)}
+            # the events at their weight omega whatever the frames' noise (--frame-noise 0)
+            "blur+event-fn0": dict(frame_noise=0.0)}
 DEFAULT_VARIANTS = ("naive", "blur-only", "blur+event", "oracle")
 # The full table is sized so that a 2-core CPU finishes it in about an hour (48 runs, two at a time); the
 # issue's example size (128x96, 3000 steps) is ~4x that: --size 128x96 --steps 3000.

@@ -19,8 +19,8 @@ trained under variants that each remove one cause of error, on the same frames, 
 * ``blur+event`` (5 sub-poses), ``blur+event@17`` and ``blur+event@4pairs`` (4 random pose pairs per step
   instead of all 10) at one threshold cell (default 0.05 with 10 % relative mismatch): what the events add, what
   more sub-poses add to them, and what the pair selection costs;
-* ``blur+event-noise``: blur+event with ``--frame-noise auto`` (the events weigh more as the blur loss's error
-  comes down to the frames' noise);
+* ``blur+event-fn0``: blur+event with ``--frame-noise 0``: the events at their weight omega, however much of
+  the blur loss's error is the frames' noise (by default they weigh more as it comes down to that noise);
 * ``naive``: plain 3DGS on the blurry frame at the mid pose; with ``blur-only`` it says what the blur model adds
   over fitting the blurry frame as if it were sharp;
 * noisy scenes also add ``blur-clean`` and ``naive-clean`` (5 sub-poses, and naive, on the noise-free blurry
@@ -71,7 +71,7 @@ VARIANTS = {
     "naive": ("free", dict(naive=True), 1, False),
     "naive-clean": ("clean", dict(naive=True), 1, False),
     "blur+event": ("cell", dict(event_norm="noise"), 1, False),
-    "blur+event-noise": ("cell", dict(event_norm="noise", frame_noise=None), 1, False),
+    "blur+event-fn0": ("cell", dict(event_norm="noise", frame_noise=0.0), 1, False),
     "blur+event@17": ("cell", dict(event_norm="noise", subposes=SUBFRAMES), 1, False),
     "blur+event@4pairs": ("cell", dict(event_norm="noise", event_pairs=4), 1, False),
     "oracle@3000": ("free", dict(oracle=True), 3, True),
@@ -94,7 +94,7 @@ STEPS = [
     ("blur model instead of naive, noisy frames", "naive", "blur-only"),
     ("blur model instead of naive, noise-free frames", "naive-clean", "blur-clean"),
     ("no events (5 sub-poses)", "blur+event", "blur-only"),
-    ("events weighed by the frame noise (--frame-noise auto)", "blur+event-noise", "blur+event"),
+    ("events at omega whatever the frame noise (--frame-noise 0)", "blur+event", "blur+event-fn0"),
     ("no events (17 sub-poses)", "blur+event@17", "blur-only@17"),
     ("5 sub-poses instead of 17 (blur+event)", "blur+event@17", "blur+event"),
     ("4 random pairs per step instead of all", "blur+event", "blur+event@4pairs"),
