@@ -90,8 +90,8 @@ study-attribution: setup
 	$(BIN)/python tools/studies/study_attribution.py --variants info-oracle-sh oracle-sh --seeds 0 1 2 \
 		--json tools/results/study_attribution_sh.json
 	$(BIN)/python tools/studies/study_attribution.py --scene lowlight --theta 0.2 --mismatch 0.15 --samples 16 \
-		--variants naive blur-only blur+event oracle oracle-noisy info-oracle blur-ideal@17 blur-clean@17 \
-		blur-only@17 blur-clean naive-clean --cache tools/results/attribution_cache_lowlight \
+		--variants naive blur-only blur+event oracle oracle-noisy info-oracle blur-clean naive-clean \
+		blur+event-fn0 blur+event-w4 --cache tools/results/attribution_cache_lowlight \
 		--json tools/results/study_attribution_lowlight.json --plot tools/results/study_attribution_lowlight.png
 
 # a camera with a tone curve the scene does not declare, and --learn-response (heldout_shake at theta 0.05; shares

@@ -21,6 +21,7 @@ trained under variants that each remove one cause of error, on the same frames, 
   more sub-poses add to them, and what the pair selection costs;
 * ``blur+event-fn0``: blur+event with ``--frame-noise 0``: the events at their weight omega, however much of
   the blur loss's error is the frames' noise (by default they weigh more as it comes down to that noise);
+  ``blur+event-w4`` the same at 4 times omega (what a fixed heavier weight does);
 * ``naive``: plain 3DGS on the blurry frame at the mid pose; with ``blur-only`` it says what the blur model adds
   over fitting the blurry frame as if it were sharp;
 * noisy scenes also add ``blur-clean`` and ``naive-clean`` (5 sub-poses, and naive, on the noise-free blurry
@@ -72,6 +73,7 @@ VARIANTS = {
     "naive-clean": ("clean", dict(naive=True), 1, False),
     "blur+event": ("cell", dict(event_norm="noise"), 1, False),
     "blur+event-fn0": ("cell", dict(event_norm="noise", frame_noise=0.0), 1, False),
+    "blur+event-w4": ("cell", dict(event_norm="noise", frame_noise=0.0, event_weight=32 / 625), 1, False),
     "blur+event@17": ("cell", dict(event_norm="noise", subposes=SUBFRAMES), 1, False),
     "blur+event@4pairs": ("cell", dict(event_norm="noise", event_pairs=4), 1, False),
     "oracle@3000": ("free", dict(oracle=True), 3, True),
@@ -95,6 +97,7 @@ STEPS = [
     ("blur model instead of naive, noise-free frames", "naive-clean", "blur-clean"),
     ("no events (5 sub-poses)", "blur+event", "blur-only"),
     ("events at omega whatever the frame noise (--frame-noise 0)", "blur+event", "blur+event-fn0"),
+    ("events at 4 omega whatever the frame noise", "blur+event", "blur+event-w4"),
     ("no events (17 sub-poses)", "blur+event@17", "blur-only@17"),
     ("5 sub-poses instead of 17 (blur+event)", "blur+event@17", "blur+event"),
     ("4 random pairs per step instead of all", "blur+event", "blur+event@4pairs"),
