@@ -20,7 +20,8 @@ linear ramp, so a smooth image - and motion blur makes frames smooth - leaves on
 Gaussian noise of sigma its response is Gaussian with standard deviation 6 sigma (the mask's L2 norm).
 Immerkaer averages the absolute response; the median is taken here instead (as in Donoho's MAD estimate:
 sigma = median |response| / (6 * 0.6745)), because edges and texture add large responses at a few pixels,
-which move the mean (0.7-1.6 levels on noise-free built-in scenes) but not the median (0-0.14 levels).
+which move the mean (0.7-1.6 levels on noise-free built-in scenes) but not the median (0-0.16 levels, below
+the one level that rounding alone can give: taken as 0).
 """
 from __future__ import annotations
 
@@ -34,12 +35,18 @@ _MAD_NORMAL = 0.6744897501960817   # the median of |N(0, 1)|, the normal's 3/4 q
 _MASK = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
 
 
-def estimate_noise(frames: np.ndarray) -> float:
+def estimate_noise(frames: np.ndarray, step: float | None = None) -> float:
     """The noise variance of ``frames`` ((N, H, W, C) uint8 or (N, H, W[, C]) floats in [0, 1]): the median
     form of Immerkaer's estimate (module doc) per frame and channel, as a variance in display values (1 =
-    white), averaged. Frames smaller than 3x3 have none to give: 0."""
+    white), averaged. Below one level of the stored values (``step``; None: 1/255 for uint8 frames, 0 for
+    floats) it is 0: rounding a smooth image makes the response an integer number of levels, at most 4 on a
+    linear ramp (the second difference of a rounded ramp is -1, 0 or 1 along each axis), which reads as up
+    to 4 / (6 * 0.6745) = 0.99 levels of noise where there is none. Frames smaller than 3x3 have none to
+    give: 0."""
     x = np.asarray(frames)
     scale = 255.0 if x.dtype == np.uint8 else 1.0
+    if step is None:
+        step = 1.0 / 255.0 if x.dtype == np.uint8 else 0.0
     x = x.astype(np.float64) / scale
     if x.ndim == 3:
         x = x[..., None]
@@ -51,7 +58,8 @@ def estimate_noise(frames: np.ndarray) -> float:
     # the mask's response at every interior pixel, from shifted views (a 3x3 correlation, no SciPy needed)
     resp = sum(_MASK[i, j] * x[:, i:h - 2 + i, j:w - 2 + j, :] for i in range(3) for j in range(3))
     sigma = np.median(np.abs(resp), axis=(1, 2)) / (6.0 * _MAD_NORMAL)   # (N, C)
-    return float(np.mean(sigma ** 2))
+    var = float(np.mean(sigma ** 2))
+    return var if var >= step * step else 0.0
 
 
 def blur_weight(noise_var: float, mse: float | None) -> float:

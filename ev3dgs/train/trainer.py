@@ -172,7 +172,7 @@ class Trainer:
 
         if self.cfg.frame_noise is not None:
             return (self.cfg.frame_noise / 255.0) ** 2
-        return estimate_noise(self.data.images.cpu().numpy())
+        return estimate_noise(self.data.images.cpu().numpy(), step=1.0 / 255.0)   # scene files store 8 bits
 
     def _edi_inputs(self) -> tuple[torch.Tensor, torch.Tensor]:
         """--edi-prior: each view's (N, H, W) log intensity of the blurry frame and where the EDI target holds
