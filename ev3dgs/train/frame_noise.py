@@ -10,8 +10,8 @@ its weight is the share of its error that the model can still fix,
     w = clamp(1 - s2 / mse, W_MIN, 1),
 
 with s2 the frames' noise variance (display values, 1 = white) and mse the blur term's squared error as the
-run goes. The trainer applies it as the event weight omega / w, so a noise-free scene (s2 ~ 0) trains as
-without it and the blur term's gradients, which drive densification, keep their size.
+run goes. The trainer applies it as the event weight omega / w, so frames without noise (s2 = 0) train as
+without it, bit for bit, and the blur term's gradients, which drive densification, keep their size.
 
 The noise is estimated from the frames themselves (``estimate_noise``), as a user's frames come without a
 noise figure, with the 3x3 mask of J. Immerkaer ("Fast noise variance estimation", CVIU 64(2), 1996),
@@ -20,8 +20,8 @@ linear ramp, so a smooth image - and motion blur makes frames smooth - leaves on
 Gaussian noise of sigma its response is Gaussian with standard deviation 6 sigma (the mask's L2 norm).
 Immerkaer averages the absolute response; the median is taken here instead (as in Donoho's MAD estimate:
 sigma = median |response| / (6 * 0.6745)), because edges and texture add large responses at a few pixels,
-which move the mean (0.7-1.6 levels on noise-free built-in scenes) but not the median (0-0.16 levels, below
-the one level that rounding alone can give: taken as 0).
+which move the mean (0.7-1.6 levels on noise-free built-in scenes) but not the median (0-0.16 levels). Under
+one 8-bit level the estimate is 0: rounding alone can read as up to 0.99 levels (``estimate_noise``).
 """
 from __future__ import annotations
 

@@ -42,7 +42,7 @@ from .config import TrainConfig
 from .data import TrainData, load_train_data
 from .edi_prior import anneal_factor, edi_prior_loss
 from .events import pair_list, pose_counts
-from .frame_noise import blur_weight, update_mse
+from .frame_noise import blur_weight, estimate_noise, update_mse
 from .init import init_bounds
 from .losses import (average_loss, blur_average, log_intensity, noise_event_loss, pose_event_loss,
                      srgb_to_linear_hdr_torch, srgb_to_linear_torch, update_floor)
@@ -168,8 +168,6 @@ class Trainer:
     def _frame_noise(self) -> float:
         """--frame-noise: the training frames' noise variance (display values, 1 = white), given or estimated
         (log.jsonl records it as sigma in 8-bit levels, with the event weight it sets, where it is above 0)."""
-        from .frame_noise import estimate_noise
-
         if self.cfg.frame_noise is not None:
             return (self.cfg.frame_noise / 255.0) ** 2
         return estimate_noise(self.data.images.cpu().numpy(), step=1.0 / 255.0)   # scene files store 8 bits
