@@ -47,7 +47,6 @@ def estimate_noise(frames: np.ndarray, step: float | None = None) -> float:
     scale = 255.0 if x.dtype == np.uint8 else 1.0
     if step is None:
         step = 1.0 / 255.0 if x.dtype == np.uint8 else 0.0
-    x = x.astype(np.float64) / scale
     if x.ndim == 3:
         x = x[..., None]
     if x.ndim != 4:
@@ -55,9 +54,15 @@ def estimate_noise(frames: np.ndarray, step: float | None = None) -> float:
     n, h, w, c = x.shape
     if h < 3 or w < 3 or n == 0:
         return 0.0
-    # the mask's response at every interior pixel, from shifted views (a 3x3 correlation, no SciPy needed)
-    resp = sum(_MASK[i, j] * x[:, i:h - 2 + i, j:w - 2 + j, :] for i in range(3) for j in range(3))
-    sigma = np.median(np.abs(resp), axis=(1, 2)) / (6.0 * _MAD_NORMAL)   # (N, C)
+
+    def median_response(frame: np.ndarray) -> np.ndarray:
+        """(C,) median |response| of one frame: the mask at every interior pixel from shifted views (a 3x3
+        correlation, no SciPy needed), one frame at a time so that a long recording's float copy stays small."""
+        f = frame.astype(np.float64) / scale
+        resp = sum(_MASK[i, j] * f[i:h - 2 + i, j:w - 2 + j, :] for i in range(3) for j in range(3))
+        return np.median(np.abs(resp), axis=(0, 1))
+
+    sigma = np.stack([median_response(frame) for frame in x]) / (6.0 * _MAD_NORMAL)   # (N, C)
     var = float(np.mean(sigma ** 2))
     return var if var >= step * step else 0.0
 
