@@ -253,6 +253,18 @@ def test_resume_extends_and_rolls_the_log_back(scene, tmp_path, capsys):
     assert (saved.iterations, saved.threads, saved.seed, saved.subposes) == (8, 2, 4, 3)
 
 
+def test_resume_keeps_the_sh_schedule_the_run_started_with(scene, tmp_path, capsys):
+    """--sh-interval auto is fixed when the run is made (iterations / 30): extending the run to 2x the steps
+    keeps the saved interval, where a fresh run of that length would get twice it."""
+    run = tmp_path / "run"
+    assert cli.main(_base(scene, str(run), "--iterations", "60", "--checkpoint-every", "30")) == 0
+    assert TrainConfig.load(run / "config.json").sh_interval == 2
+    assert TrainConfig(scene=scene, iterations=120).sh_interval == 4
+    rc, err = _cli(capsys, "train", scene, "--out", run, "--resume", "--iterations", "120")
+    assert rc == 0, err
+    assert TrainConfig.load(run / "config.json").sh_interval == 2 and _steps(run) == list(range(1, 121))
+
+
 def test_resume_past_the_requested_iterations_is_refused(scene, finished_run, tmp_path, capsys):
     run = _copy(finished_run, tmp_path / "run")
     rc, err = _cli(capsys, "train", scene, "--out", run, "--resume", "--iterations", "4")

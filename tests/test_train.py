@@ -4,6 +4,8 @@ import json
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from ev3dgs import schema
 from ev3dgs.cli import main as cli
@@ -11,7 +13,7 @@ from ev3dgs.geometry import intrinsics, look_at
 from ev3dgs.sim.isp import linear_to_srgb, srgb_to_linear
 from ev3dgs.splat.model import GaussianModel
 from ev3dgs.splat.rasterize import rasterization
-from ev3dgs.train.config import TrainConfig
+from ev3dgs.train.config import TrainConfig, sh_interval_for
 from ev3dgs.train.evaluate import evaluate
 from ev3dgs.train.export import load_ply
 from ev3dgs.train.trainer import Trainer, TrainingError
@@ -202,6 +204,21 @@ def test_the_sh_degree_rises_every_sh_interval_steps(scene_path, tmp_path):
     assert seen == [0] * 4 + [1] * 4 + [2] * 6
 
 
+@settings(deadline=None)
+@given(st.integers(1, 10 ** 7))
+def test_the_auto_sh_schedule_is_the_3dgs_one_scaled_to_the_run(n):
+    """3DGS raises the degree every 1000 of 30 000 steps, so degree 3 from a tenth of the run: auto gives
+    every n / 30 steps, rounded down, at least 1; 1000 at 30 000 steps, and never later than 3DGS would."""
+    every = sh_interval_for(n)
+    assert every >= 1 and (every == 1 or 30 * every <= n < 30 * (every + 1))
+    assert TrainConfig(scene="x.h5", iterations=n).sh_interval == every
+    assert TrainConfig(scene="x.h5", iterations=n, sh_interval=7).sh_interval == 7
+
+
+def test_the_auto_sh_schedule_at_known_lengths():
+    assert [sh_interval_for(n) for n in (1, 29, 30, 1000, 1500, 3000, 30000)] == [1, 1, 1, 33, 50, 100, 1000]
+
+
 def test_hdr_needs_the_linear_light_blur_model(scene_path, tmp_path):
     from ev3dgs.errors import ConfigError
 
@@ -297,7 +314,7 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     m = json.loads((run / "metrics.json").read_text())
     assert {"test", "train_sharp", "blurry_input"} <= set(m)
     saved = json.loads((run / "config.json").read_text())
-    assert saved["hdr"] == ("--hdr" in flags) and saved["sh_interval"] == (4 if "--sh-interval" in flags else 1000)
+    assert saved["hdr"] == ("--hdr" in flags) and saved["sh_interval"] == (4 if "--sh-interval" in flags else 1)  # auto: 12 / 30 -> 1
     assert saved["edi_prior"] == (0.02 if "--edi-prior" in flags else 0.0)
     assert saved["subpose_px"] == (0.5 if "--subpose-px" in flags else 0.0)
     assert saved["learn_response"] == ("--learn-response" in flags)

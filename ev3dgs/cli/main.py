@@ -87,6 +87,16 @@ def _frame_noise(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"expected auto or a number, got {text!r}") from None
 
 
+def _sh_interval(text: str) -> int | None:
+    """argparse type of --sh-interval: "auto" (None: scaled to --iterations) or an integer."""
+    if text == "auto":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected auto or an integer, got {text!r}") from None
+
+
 def _train(args) -> int:
     _check_train(args)
     from ..train.config import TrainConfig, resume_config
@@ -353,10 +363,10 @@ def build_parser():
                         "z the optical axis: the roll gets its own Adam scale) (default %(default)s)")
     t.add_argument("--sh-degree", type=int, default=3, help="spherical-harmonics degree of the colours, 0-3 "
                                                            "(default %(default)s)")
-    t.add_argument("--sh-interval", type=int, default=1000,
-                   help="raise the active spherical-harmonics degree by one every this many steps, up to "
-                        "--sh-degree (3DGS: 1000 of 30 000 steps); the colours stay view-independent for the "
-                        "first N steps, so for short runs use about --iterations / 30 (default %(default)s)")
+    t.add_argument("--sh-interval", type=_sh_interval, default="auto", metavar="auto|N",
+                   help="raise the active spherical-harmonics degree by one every N steps, up to --sh-degree; "
+                        "auto: the 3DGS schedule (every 1000 of 30 000 steps) scaled to --iterations, every "
+                        "--iterations / 30 steps (default %(default)s)")
     t.add_argument("--init-points", type=int, default=20000,
                    help="random initial Gaussians inside the scene bounds when the file has no /points "
                         "(default %(default)s)")

@@ -29,6 +29,16 @@ DEFAULT_REL_MISMATCH = 0.1   # sigma / theta assumed when the scene does not say
                              # of thresholds 0.1-0.3)
 
 
+SH_STEPS_3DGS = (1000, 30000)   # 3DGS raises the SH degree every 1000 of its 30 000 steps
+
+
+def sh_interval_for(iterations: int) -> int:
+    """--sh-interval auto: the 3DGS schedule scaled to ``iterations`` steps (every iterations / 30 steps,
+    at least 1): degree 3 from a tenth of the run, as in 3DGS, and 1000 for a 30 000-step run."""
+    every, total = SH_STEPS_3DGS
+    return max(1, iterations * every // total)
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     scene: str
@@ -61,7 +71,9 @@ class TrainConfig:
     edi_anneal: float = 0.5           # the prior's weight falls linearly to 0 at this fraction of the run
     ssim_lambda: float = 0.2
     sh_degree: int = 3
-    sh_interval: int = 1000           # raise the active SH degree every this many steps
+    sh_interval: int | None = None    # raise the active SH degree every this many steps; None = the 3DGS
+                                      # schedule scaled to the run (sh_interval_for), fixed when the config
+                                      # is made so that extending a run keeps it
     init_points: int = 20000          # random init inside `bounds` when the scene has no /points
     init_opacity: float = 0.1
     densify: bool = True
@@ -115,7 +127,9 @@ class TrainConfig:
         check(not (self.oracle and self.naive), "--oracle and --naive are different variants: give one")
         check(0 <= self.ssim_lambda <= 1, "ssim lambda must be in [0, 1]")
         check(0 <= self.sh_degree <= 3, "--sh-degree must be in [0, 3]")
-        check(self.sh_interval >= 1, "--sh-interval must be >= 1")
+        check(self.sh_interval is None or self.sh_interval >= 1, "--sh-interval must be auto or >= 1")
+        if self.sh_interval is None:
+            object.__setattr__(self, "sh_interval", sh_interval_for(self.iterations))
         check(self.init_points >= 1, "--init-points must be >= 1")
         check(0 < self.init_opacity < 1, "init opacity must be in (0, 1)")
         check(self.seed >= 0, "--seed must be >= 0")

@@ -316,6 +316,9 @@ def main(argv=None) -> int:
     ap.add_argument("--merge", nargs="+", type=Path, default=[], metavar="EARLIER.json",
                     help="add the runs of earlier summaries to the table and plot (a run of this invocation wins "
                          "over one with the same scene, variant and seed; default: none)")
+    ap.add_argument("--sh-interval", type=int, metavar="N",
+                    help="train every variant that does not set its own with --sh-interval N (default: the "
+                         "trainer's, auto; 1000 gives the tables made before the schedule scaled with the run)")
     ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
     if a.lpips_weights:
@@ -340,6 +343,8 @@ def main(argv=None) -> int:
             render[key] = getattr(a, key)
     if a.jobs < 1:
         ap.error("--jobs must be >= 1")
+    if a.sh_interval is not None and a.sh_interval < 1:
+        ap.error("--sh-interval must be >= 1")
     preset["render"] = render
     if a.event_weights and any(not (w >= 0) for w in a.event_weights):
         ap.error("--event-weights must be >= 0")
@@ -360,6 +365,9 @@ def main(argv=None) -> int:
         for name in scenes:
             for variant, overrides in variants.items():
                 tag = variant.replace("+", "_").replace("@", "_w")
+                if a.sh_interval is not None:   # its own run folder: the default's runs stay cached beside it
+                    overrides = {"sh_interval": a.sh_interval, **overrides}
+                    tag += f"_sh{a.sh_interval}"
                 jobs.append({"scene": name, "scene_path": str(paths[name]), "variant": variant, "seed": seed,
                              "overrides": overrides, "iterations": iterations, "init_points": a.init_points,
                              "lpips_weights": a.lpips_weights and str(a.lpips_weights),
@@ -375,6 +383,7 @@ def main(argv=None) -> int:
     scenes = list(dict.fromkeys([*scenes, *(r["scene"] for r in runs)]))
     result = {"settings": {"quick": a.quick, "scenes": scenes, "seeds": seeds, "iterations": iterations,
                            "init_points": a.init_points, "render": render, "dataset_seed": 0, "jobs": a.jobs,
+                           "sh_interval": a.sh_interval,
                            "variants": list(variants), "variant_overrides": variants, "code": code_hash(),
                            "merged": [str(p) for p in a.merge]},
               "summary": summary, "targets": targets(summary["average"]),
