@@ -80,6 +80,8 @@ study-event-term: setup
 		--json tools/results/study_event_term_subposes.json --plot tools/results/study_event_term_subposes.png \
 		--plot-variants blur+event blur+event-px2 blur+event-hdr-sh-map blur+event-hdr-sh-map-px2 \
 		blur+event-hdr-sh-map@17
+	$(BIN)/python tools/studies/study_event_term.py --variants blur-only-sh blur+event-sh oracle-sh \
+		--json tools/results/study_event_term_sh.json --plot tools/results/study_event_term_sh.png
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
 # on 2 cores after study-event-term) and lowlight (frame noise), two seeds

@@ -193,6 +193,24 @@ def test_bench_merge_adds_earlier_runs_once_and_refuses_a_foreign_file(tmp_path)
         merged_runs([bad], set(), ap)
 
 
+def test_bench_sh_interval_fills_only_variants_without_their_own_and_keeps_its_own_run_folders(tmp_path):
+    """bench_fidelity --sh-interval N: every variant that does not set the SH schedule trains with N, one that
+    does keeps its own; the runs go to folders of their own, so the default's cached runs are not retrained."""
+    from bench_fidelity import VARIANTS, make_jobs
+
+    variants = {k: VARIANTS[k] for k in ("blur+event", "oracle-sh")}
+    paths = {"lego": tmp_path / "lego_96x72.h5"}
+    plain = make_jobs(["lego"], paths, variants, 2, tmp_path, None, iterations=10)
+    fixed = make_jobs(["lego"], paths, variants, 2, tmp_path, 1000, iterations=10)
+    assert [(j["seed"], j["variant"]) for j in plain] == [(0, "blur+event"), (0, "oracle-sh"), (1, "blur+event"),
+                                                          (1, "oracle-sh")]
+    assert [j["overrides"].get("sh_interval") for j in plain] == [None, 33, None, 33]
+    assert [j["overrides"].get("sh_interval") for j in fixed] == [1000, 33, 1000, 33]
+    assert all(j["iterations"] == 10 for j in plain + fixed)
+    assert not {j["out"] for j in plain} & {j["out"] for j in fixed}
+    assert fixed[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_sh1000_s0")
+
+
 def test_event_term_plot_draws_every_variant_or_the_ones_asked_for(tmp_path):
     """study_event_term.plot: a variant without a fixed style (here a sub-pose variant) gets one and is
     drawn; --plot-variants restricts the event variants, not the sensor-free lines."""

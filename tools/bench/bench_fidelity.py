@@ -101,6 +101,25 @@ def make_variants(names: list[str], event_weights: list[float] | None) -> dict[s
     return out
 
 
+def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache: Path, sh_interval: int | None,
+              **common) -> list[dict]:
+    """One job per (seed, scene, variant), seed-major (an interrupted run leaves whole seeds). ``sh_interval``:
+    the SH schedule of every variant that does not set its own, in run folders of its own (``_shN``), so that
+    the default's cached runs stay beside them."""
+    jobs = []
+    for seed in range(seeds):
+        for name in scenes:
+            for variant, overrides in variants.items():
+                tag = variant.replace("+", "_").replace("@", "_w")
+                if sh_interval is not None:
+                    overrides = {"sh_interval": sh_interval, **overrides}
+                    tag += f"_sh{sh_interval}"
+                jobs.append({"scene": name, "scene_path": str(paths[name]), "variant": variant, "seed": seed,
+                             "overrides": overrides, **common,
+                             "out": str(cache / "runs" / Path(paths[name]).stem / f"{tag}_s{seed}")})
+    return jobs
+
+
 def build_scene(name: str, render: dict, cache: Path, quiet: bool) -> Path:
     spec = load_scene(name)
     r = resolve_render(spec, **render)
@@ -360,18 +379,9 @@ def main(argv=None) -> int:
     a.cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     paths = {name: build_scene(name, render, a.cache, a.quiet) for name in scenes}
-    jobs = []
-    for seed in range(seeds):                      # seed-major: an interrupted run leaves whole seeds
-        for name in scenes:
-            for variant, overrides in variants.items():
-                tag = variant.replace("+", "_").replace("@", "_w")
-                if a.sh_interval is not None:   # its own run folder: the default's runs stay cached beside it
-                    overrides = {"sh_interval": a.sh_interval, **overrides}
-                    tag += f"_sh{a.sh_interval}"
-                jobs.append({"scene": name, "scene_path": str(paths[name]), "variant": variant, "seed": seed,
-                             "overrides": overrides, "iterations": iterations, "init_points": a.init_points,
-                             "lpips_weights": a.lpips_weights and str(a.lpips_weights),
-                             "out": str(a.cache / "runs" / paths[name].stem / f"{tag}_s{seed}")})
+    jobs = make_jobs(scenes, paths, variants, seeds, a.cache, a.sh_interval,
+                     iterations=iterations, init_points=a.init_points,
+                     lpips_weights=a.lpips_weights and str(a.lpips_weights))
     runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]
     this = len(runs)
     runs += merged_runs(a.merge, {(r["scene"], r["variant"], r["seed"]) for r in runs}, ap)
