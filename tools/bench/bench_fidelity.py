@@ -337,7 +337,7 @@ def main(argv=None) -> int:
                          "over one with the same scene, variant and seed; default: none)")
     ap.add_argument("--sh-interval", type=int, metavar="N",
                     help="train every variant that does not set its own with --sh-interval N (default: the "
-                         "trainer's, auto; 1000 gives the tables made before the schedule scaled with the run)")
+                         "trainer's, auto; 1000 keeps the colours view-independent through 1000 steps)")
     ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
     if a.lpips_weights:
