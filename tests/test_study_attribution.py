@@ -209,6 +209,12 @@ def test_bench_sh_interval_fills_only_variants_without_their_own_and_keeps_its_o
     assert all(j["iterations"] == 10 for j in plain + fixed)
     assert not {j["out"] for j in plain} & {j["out"] for j in fixed}
     assert fixed[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_sh1000_s0")
+    # the studies keep the schedule their tables were trained with, through the same merge
+    from bench_fidelity import STUDY_SH_INTERVAL, with_sh_interval
+
+    assert with_sh_interval(VARIANTS["blur+event"], STUDY_SH_INTERVAL) == {"sh_interval": 1000}
+    assert with_sh_interval(VARIANTS["oracle-sh"], STUDY_SH_INTERVAL) == {"oracle": True, "sh_interval": 33}
+    assert with_sh_interval(VARIANTS["oracle-sh"], None) is VARIANTS["oracle-sh"]
 
 
 def test_event_term_plot_draws_every_variant_or_the_ones_asked_for(tmp_path):

@@ -56,10 +56,6 @@ sys.path.insert(0, str(ROOT / "tools" / "studies"))
 from pareto import save_json  # noqa: E402
 
 SUBFRAMES = 17
-# The study's tables were trained with the SH degree raised every 1000 steps (view-independent colour
-# throughout a 1000-step run); the variants that set sh_interval (-sh: 33, the default auto at 1000 steps)
-# keep theirs. Kept fixed so that the study reproduces its tables whatever the trainer's default schedule.
-SH_SCHEDULE = dict(sh_interval=1000)
 # variant -> (training scene: "cell" | "free" (the events-free cell the sensor-free runs share) | "info" |
 # "ideal", TrainConfig overrides, step multiplier, first seed only)
 VARIANTS = {
@@ -329,6 +325,8 @@ def render_settings(a) -> dict:
 
 
 def main(argv=None) -> int:
+    from bench_fidelity import STUDY_SH_INTERVAL, with_sh_interval
+
     from study_event_term import cell_name, make_cells
 
     from ev3dgs.train.jobs import default_jobs, run_parallel
@@ -363,8 +361,8 @@ def main(argv=None) -> int:
             # rest (the study_event_term runs were scored there; its sharp and test frames are the cell's)
             jobs.append(dict(variant=v, seed=seed, train_scene=str(scenes[kind]),
                              eval_scene=str(cell if kind == "cell" else scenes["free"]),
-                             overrides={**SH_SCHEDULE, **overrides}, iterations=a.iterations * mult,
-                             init_points=a.init_points,
+                             overrides=with_sh_interval(overrides, STUDY_SH_INTERVAL),
+                             iterations=a.iterations * mult, init_points=a.init_points,
                              out=str(cache / "runs" / f"{name}_s{seed}")))
     # seed by seed (an interrupted study leaves whole seeds), the slow ones (17 sub-poses, 3x steps) first in
     # each, so two workers finish together

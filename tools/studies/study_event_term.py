@@ -45,10 +45,6 @@ sys.path.insert(0, str(ROOT / "tools" / "bench"))
 
 from pareto import save_json  # noqa: E402
 
-# The study's tables were trained with the SH degree raised every 1000 steps (view-independent colour
-# throughout a 1000-step run); the variants that set sh_interval (-sh: 33, the default auto at 1000 steps)
-# keep theirs. Kept fixed so that the study reproduces its tables whatever the trainer's default schedule.
-SH_SCHEDULE = dict(sh_interval=1000)
 VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="noise"),
             "blur+event-count": dict(event_norm="count"), "oracle": dict(oracle=True),
             "blur+event-map": dict(event_norm="noise", threshold_map=True),
@@ -270,6 +266,8 @@ def plot(summary: dict, thetas, rels, png: Path, variants=None) -> list[str]:
 
 
 def main(argv=None) -> int:
+    from bench_fidelity import STUDY_SH_INTERVAL, with_sh_interval
+
     from ev3dgs.train.jobs import default_jobs, run_parallel
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -318,7 +316,7 @@ def main(argv=None) -> int:
             for cname, path in targets:
                 theta, rel = params.get(cname, (None, 0.0))
                 jobs.append(dict(cell=cname, variant=v, seed=seed, scene_path=str(path),
-                                 overrides={**SH_SCHEDULE, **variants[v]},
+                                 overrides=with_sh_interval(variants[v], STUDY_SH_INTERVAL),
                                  iterations=a.iterations, init_points=a.init_points,
                                  out=str(Path(a.cache) / "runs" / f"{cname}_{v}_s{seed}"), scene=a.scene,
                                  theta=theta, rel=rel, blur_fit=a.blur_fit))

@@ -36,10 +36,6 @@ sys.path.insert(0, str(ROOT / "tools" / "studies"))
 from pareto import save_json  # noqa: E402
 
 # variant -> (TrainConfig overrides, on the sRGB cell too)
-# The study's tables were trained with the SH degree raised every 1000 steps (view-independent colour
-# throughout a 1000-step run); the variants that set sh_interval (-sh: 33, the default auto at 1000 steps)
-# keep theirs. Kept fixed so that the study reproduces its tables whatever the trainer's default schedule.
-SH_SCHEDULE = dict(sh_interval=1000)
 VARIANTS = {
     "blur-only": (dict(event_loss=False), False),
     "blur+event": (dict(event_norm="noise"), True),
@@ -145,6 +141,8 @@ def plot(summary: dict, runs: list[dict], contrast: float, png: Path) -> None:
 
 
 def main(argv=None) -> int:
+    from bench_fidelity import STUDY_SH_INTERVAL, with_sh_interval
+
     from study_attribution import add_run_args, render_settings
     from study_event_term import cell_name, make_cells
 
@@ -176,7 +174,7 @@ def main(argv=None) -> int:
             for kind in ("tone", "srgb") if on_srgb else ("tone",):
                 tag = f"tone_c{a.contrast:g}_{name}" if kind == "tone" else name
                 jobs.append(dict(kind=kind, variant=v, seed=seed, scene=str(scenes[kind]),
-                                 overrides={**SH_SCHEDULE, **overrides},
+                                 overrides=with_sh_interval(overrides, STUDY_SH_INTERVAL),
                                  iterations=a.iterations, init_points=a.init_points, contrast=a.contrast,
                                  out=str(cache / "runs" / f"{tag}_{v}_s{seed}")))
     jobs.sort(key=lambda j: (j["seed"], "oracle" in j["variant"]))
