@@ -77,24 +77,20 @@ def _record_given(sub) -> None:
     sub.parse_known_args = parse_known_args
 
 
-def _frame_noise(text: str) -> float | None:
-    """argparse type of --frame-noise: "auto" (None: estimated from the frames) or a finite number."""
-    if text == "auto":
-        return None
-    try:
-        return finite_float(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"expected auto or a number, got {text!r}") from None
+def _auto_or(parse, expected: str):
+    """An argparse type for an option whose value is "auto" (None: the trainer chooses) or ``parse(text)``."""
+    def convert(text: str):
+        if text == "auto":
+            return None
+        try:
+            return parse(text)
+        except (ValueError, argparse.ArgumentTypeError):
+            raise argparse.ArgumentTypeError(f"expected auto or {expected}, got {text!r}") from None
+    return convert
 
 
-def _sh_interval(text: str) -> int | None:
-    """argparse type of --sh-interval: "auto" (None: scaled to --iterations) or an integer."""
-    if text == "auto":
-        return None
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected auto or an integer, got {text!r}") from None
+_frame_noise = _auto_or(finite_float, "a number")   # --frame-noise: auto = estimated from the frames
+_sh_interval = _auto_or(int, "an integer")          # --sh-interval: auto = scaled to --iterations
 
 
 def _train(args) -> int:
