@@ -12,6 +12,8 @@ import torch
 
 from ev3dgs.cli import main as cli
 
+from cli_exit import exit_code
+
 W, H = 32, 24
 FAST = ["--iterations", "5", "--init-points", "500", "--threads", "1", "--sh-degree", "0", "--checkpoint-every", "5"]
 
@@ -42,14 +44,6 @@ def run(trained, tmp_path):
     dst = tmp_path / "run"
     shutil.copytree(trained, dst)
     return dst
-
-
-def call(argv) -> int:
-    """cli.main's exit code, also for argparse's refusals (SystemExit)."""
-    try:
-        return cli.main(argv)
-    except SystemExit as e:
-        return e.code
 
 
 def one_line_error(capsys) -> str:
@@ -231,7 +225,7 @@ def test_bad_output_names_are_refused(run, tmp_path, capsys, argv, match):
     import re
 
     before = sorted(p.name for p in tmp_path.iterdir())
-    assert call([a.replace("RUN", str(run)).replace("TMP", str(tmp_path)) for a in argv]) == 2
+    assert exit_code(cli.main, [a.replace("RUN", str(run)).replace("TMP", str(tmp_path)) for a in argv]) == 2
     assert re.search(match, one_line_error(capsys))
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
@@ -279,9 +273,9 @@ def test_eval_lpips_without_network_is_one_line_naming_the_file(run, tmp_path, m
 
     monkeypatch.setattr(torch.hub, "download_url_to_file", no_network)
     (run / "metrics.json").unlink(missing_ok=True)
-    assert call(["eval", str(run), "--lpips", "alex"]) == 2
+    assert exit_code(cli.main, ["eval", str(run), "--lpips", "alex"]) == 2
     err = one_line_error(capsys)
     assert "alexnet-owt-7be5be79.pth" in err and str(tmp_path / "torch" / "hub" / "checkpoints") in err
     assert not (run / "metrics.json").exists()
-    assert call(["eval", str(run), "--lpips", "alex", "--lpips-weights", "w.pth"]) == 2
+    assert exit_code(cli.main, ["eval", str(run), "--lpips", "alex", "--lpips-weights", "w.pth"]) == 2
     assert "either --lpips" in one_line_error(capsys)

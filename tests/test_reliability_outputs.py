@@ -23,6 +23,8 @@ from ev3dgs.cli import sim as sim_cli
 from ev3dgs.events import Events
 from ev3dgs.outputs import OutputError, remove_stale_temps
 
+from cli_exit import exit_code
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data" / "aedat" / "aestream_davis.aedat4"
 
@@ -79,14 +81,6 @@ def one_line_error(capsys, rc, *, match=None):
     if match is not None:
         assert match in lines[0], lines[0]
     return lines[0]
-
-
-def call(mod, args) -> int:
-    """mod.main(args), with a usage error's SystemExit as its exit code."""
-    try:
-        return mod.main(args)
-    except SystemExit as e:
-        return e.code
 
 
 def dead_pid() -> int:
@@ -208,7 +202,7 @@ def test_read_only_outputs(npz, ro_dir, capsys):
     if SHARED.exists():
         cases.append((ingest_cli, ["davis", str(SHARED), "--out", str(ro_dir / "d.h5"), "--no-poses"]))
     for mod, args in cases:
-        line = one_line_error(capsys, call(mod, args))
+        line = one_line_error(capsys, exit_code(mod.main, args))
         assert "Read-only file system" in line, (args, line)
     assert (ro_dir / "existing.h5").read_bytes() == b"old"
     assert temps(ro_dir) == []
@@ -238,7 +232,7 @@ def test_outputs_in_the_wrong_place(npz, tmp_path, capsys):
         (ev3dgs_cli, ["train", "x.h5", "--out", str(tmp_path / "run"), "--event-weight", "inf"], "finite number"),
     ]
     for mod, args, match in cases:
-        one_line_error(capsys, call(mod, args), match=match)
+        one_line_error(capsys, exit_code(mod.main, args), match=match)
     assert temps(tmp_path) == []
 
 

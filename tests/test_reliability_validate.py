@@ -25,6 +25,7 @@ from ev3dgs.events import Events
 from ev3dgs.geometry import look_at, rotvec_to_matrix
 from ev3dgs.io.davis import DavisOptions
 
+from cli_exit import exit_code
 from test_stability import tiny_scene  # noqa: E402,F401  (a fixture: the scene test_stability trains on)
 
 from h5_edits import set_attr, set_value
@@ -347,10 +348,8 @@ def test_bad_event_margin_is_an_input_error(tmp_path, capsys, margin):
     capsys.readouterr()
     rec = tmp_path / "rec.aedat4"
     rec.write_bytes(b"not read: the options are checked first")
-    try:   # argparse may refuse non-finite numbers itself (SystemExit 2), the library refuses the rest
-        code = ingest.main(["davis", str(rec), "--out", str(tmp_path / "o.h5"), "--event-margin-ms", margin])
-    except SystemExit as e:
-        code = e.code
+    # argparse may refuse non-finite numbers itself (SystemExit 2), the library refuses the rest
+    code = exit_code(ingest.main, ["davis", str(rec), "--out", str(tmp_path / "o.h5"), "--event-margin-ms", margin])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and err.startswith("error: ") and "event-margin-ms" in err, err
     assert not (tmp_path / "o.h5").exists()

@@ -18,6 +18,8 @@ from ev3dgs.train.evaluate import evaluate
 from ev3dgs.train.export import load_ply
 from ev3dgs.train.trainer import Trainer, TrainingError
 
+from cli_exit import exit_code
+
 W, H = 40, 30
 
 
@@ -348,11 +350,7 @@ def test_bad_input_is_one_line_exit_2(scene_path, tmp_path, capsys, args, match)
     if "--device" in args and torch.cuda.is_available():
         pytest.skip("CUDA present")
     args = [a.replace("SCENE", scene_path).replace("X", str(tmp_path / "r")) for a in args]
-    try:
-        rc = cli.main(args)
-    except SystemExit as e:   # argparse's own refusals (a value its type rejects) exit
-        rc = e.code
-    assert rc == 2
+    assert exit_code(cli.main, args) == 2   # also argparse's own refusals (a value its type rejects)
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1
     import re

@@ -19,6 +19,7 @@ from ev3dgs.geometry import quat_to_matrix, rotvec_to_matrix
 from ev3dgs.splat.model import GaussianModel
 from ev3dgs.view import data
 
+from cli_exit import exit_code
 from view_scene import EXPOSURE_US, N, OMEGA_DPS, PERIOD_US, S, H, W, make_scene, pose_at, view_events
 
 import numpy.random as npr
@@ -281,10 +282,7 @@ def test_bad_input_is_one_line_exit_2(tmp_path, scene_path, capsys, case):
     (tmp_path / "a.txt").write_text("not a scene\n")
     if case == "no_checkpoint":
         args = [str(_run(tmp_path, scene_path, model=False))]
-    try:
-        rc = cli.main(["view", *args, "--png", str(tmp_path / "x.png")])
-    except SystemExit as e:  # argparse's errors (one line, exit 2: ev3dgs.cli.common._Parser)
-        rc = e.code
+    rc = exit_code(cli.main, ["view", *args, "--png", str(tmp_path / "x.png")])
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("error: ") and err.count("\n") == 1, err
     assert not (tmp_path / "x.png").exists()
