@@ -13,7 +13,8 @@ import pytest
 from ev3dgs import outputs
 from ev3dgs.cli import main as cli
 
-from test_cli_uniform import call, scene, trained  # noqa: F401  (fixtures: a tiny scene and a trained run)
+from cli_exit import exit_code
+from test_cli_uniform import scene, trained  # noqa: F401  (fixtures: a tiny scene and a trained run)
 
 
 @pytest.fixture
@@ -42,7 +43,8 @@ def _leftovers(folder) -> list[str]:
 
 @pytest.mark.parametrize("out", ["o.mp4", "o.gif", "frames"])
 def test_render_to_a_full_disk_leaves_nothing_under_the_final_name(trained, full_disk, capfd, out):  # noqa: F811
-    assert call(["render", str(trained), "--out", str(full_disk / out), "--frames", "200", "--size", "320x240"]) == 2
+    assert exit_code(cli.main, ["render", str(trained), "--out", str(full_disk / out), "--frames", "200",
+                                "--size", "320x240"]) == 2
     err = _one_line(capfd)
     assert "No space left on device" in err or "ENOSPC" in err or "broken file" in err, err
     assert _leftovers(full_disk) == [], _leftovers(full_disk)
