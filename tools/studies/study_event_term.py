@@ -56,6 +56,8 @@ VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="
             "oracle-sh": dict(oracle=True, sh_interval=33),
             "blur-only-sh": dict(event_loss=False, sh_interval=33),   # with blur+event-sh, oracle-sh: the
                                                                        # default schedule (auto) at 1000 steps
+            "blur+event-sh-map": dict(event_norm="noise", sh_interval=33, threshold_map=True),  # the default
+                                                                       # schedule with per-pixel thresholds
             # the EDI prior (--edi-prior W, W in units of the noise norm's default event weight 8/625), faded
             # out over the first half of the run; alone and with both options above
             "blur+event-edi": dict(event_norm="noise", edi_prior=8 / 625),
