@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..train.config import EVENT_WEIGHTS
+from ..train.config import EVENT_WEIGHTS, MAP_WEIGHTS
 from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 
@@ -27,6 +27,11 @@ def _check_train(args) -> None:
 
     if args.resume and args.force:
         raise OutputError("--resume continues the run in --out, --force replaces it: give one")
+    if args.map_weights != "prior" and not args.threshold_map and not args.resume:
+        from ..errors import ConfigError
+
+        raise ConfigError(f"--map-weights {args.map_weights} weighs the events by a threshold map: give "
+                          "--threshold-map too")
     _need_backend(args.backend)
     if not args.resume and not args.force and holds_run(args.out):
         import errno
@@ -107,7 +112,8 @@ def _train(args) -> int:
         event_pairs=args.event_pairs, frame_noise=args.frame_noise, naive=args.naive,
         event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
-        learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, hdr=args.hdr,
+        learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, map_weights=args.map_weights,
+        hdr=args.hdr,
         learn_response=args.learn_response,
         edi_prior=args.edi_prior, edi_anneal=args.edi_anneal, sh_degree=args.sh_degree, sh_interval=args.sh_interval,
         init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
@@ -311,6 +317,11 @@ def build_parser():
                         "from the events as the model fits, with the scene's mismatch or --event-mismatch as "
                         "prior; for sensors with a large pixel-to-pixel spread; noise norm only; no effect "
                         "where the mismatch is 0 (default: off)")
+    t.add_argument("--map-weights", choices=MAP_WEIGHTS, default="prior",
+                   help="with --threshold-map, how the events are weighed: prior = by the mismatch the map "
+                        "started from, as without a map (only the thresholds change); posterior = by each "
+                        "pixel's remaining threshold error after the fit, ON and OFF independently "
+                        "(default %(default)s)")
     t.add_argument("--hdr", action="store_true",
                    help="let the model hold radiance above the frame's full scale (specular highlights, lamps): "
                         "renders above 1 decode to up to 10^4 x full scale, the blurry frame is modelled as "

@@ -12,7 +12,7 @@ from ..errors import ConfigError
 # saved, how many threads the rasterizer kernels use: results are bitwise the same for any thread count).
 RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
 # keys added after runs were saved without them, with the value those runs used (not today's default)
-LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count", "frame_noise": 0.0}
+LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count", "frame_noise": 0.0, "map_weights": "posterior"}
 # keys of config.json that record facts about the run, not settings (TrainConfig.load skips them)
 RECORD_KEYS = ("scene_file",)
 
@@ -25,6 +25,8 @@ def with_legacy_values(data: dict) -> dict:
 # default event weight per event norm: "count" is Ev3DGS's 1/625 per squared event; "noise" is per unit of
 # chi-square (see losses.noise_event_loss and docs/fidelity.md for how it was set)
 EVENT_WEIGHTS = {"noise": 8.0 / 625.0, "count": 1.0 / 625.0}
+# what a threshold map (--threshold-map) gives the event term's mismatch variance (see threshold_map.py)
+MAP_WEIGHTS = ("prior", "posterior")
 DEFAULT_REL_MISMATCH = 0.1   # sigma / theta assumed when the scene does not say (DAVIS346: a few hundredths
                              # of thresholds 0.1-0.3)
 
@@ -64,6 +66,8 @@ class TrainConfig:
     oracle: bool = False              # the upper bound: plain 3DGS on the sharp frames at their sharp poses
     learn_thresholds: bool = False
     threshold_map: bool = False       # learn per-pixel ON/OFF thresholds (fixed-pattern mismatch), noise norm
+    map_weights: str = "prior"        # with threshold_map, the events' mismatch variance: "prior" = the noise
+                                      # norm's (the prior's spread); "posterior" = each pixel's fitted spread
     hdr: bool = False                 # renders above 1 are radiance above full scale; the blur clips after
                                       # the exposure integral (losses.srgb_to_linear_hdr_torch)
     learn_response: bool = False      # learn a monotone camera response before the sRGB decode (response.py)
@@ -105,6 +109,7 @@ class TrainConfig:
               "--frame-noise must be auto or a sigma in 8-bit levels in [0, 255]")
         check(not self.threshold_map or self.event_norm == "noise",
               "--threshold-map needs --event-norm noise (its prior and weights come from the noise model)")
+        check(self.map_weights in MAP_WEIGHTS, f"--map-weights must be one of {', '.join(MAP_WEIGHTS)}")
         n_pairs = self.subposes * (self.subposes - 1) // 2
         check(0 <= self.event_pairs <= n_pairs,
               f"--event-pairs must be in [0, {n_pairs}] ({self.subposes} sub-poses have {n_pairs} pairs)")

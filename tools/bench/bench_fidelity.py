@@ -47,7 +47,8 @@ from ev3dgs.train.lpips import load_lpips  # noqa: E402
 from ev3dgs.train.trainer import Trainer  # noqa: E402
 
 VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict(),
-            "oracle": dict(oracle=True), "blur+event-map": dict(threshold_map=True),
+            "oracle": dict(oracle=True), "blur+event-map": dict(threshold_map=True, map_weights="posterior"),
+            "blur+event-mapprior": dict(threshold_map=True),
             "blur+event-hdr": dict(hdr=True), "blur+event-sh": dict(sh_interval=33),
             "blur+event-hdr-sh": dict(hdr=True, sh_interval=33), "oracle-sh": dict(oracle=True, sh_interval=33),
             "blur+event-edi": dict(edi_prior=8 / 625), "blur+event-hdr-sh-edi": dict(hdr=True, sh_interval=33,

@@ -45,9 +45,12 @@ sys.path.insert(0, str(ROOT / "tools" / "bench"))
 
 from pareto import save_json  # noqa: E402
 
+# the -map variants weigh the events by each pixel's fitted threshold spread (--map-weights posterior); the
+# -mapprior ones by the mismatch prior, as without a map (--threshold-map's default)
+MAP = dict(threshold_map=True, map_weights="posterior")
 VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="noise"),
             "blur+event-count": dict(event_norm="count"), "oracle": dict(oracle=True),
-            "blur+event-map": dict(event_norm="noise", threshold_map=True),
+            "blur+event-map": dict(event_norm="noise", **MAP),
             # radiance above full scale (--hdr) and the SH degree raised every 33 steps instead of 1000
             "blur-only-hdr": dict(event_loss=False, hdr=True), "blur+event-hdr": dict(event_norm="noise", hdr=True),
             "blur+event-sh": dict(event_norm="noise", sh_interval=33),
@@ -56,21 +59,19 @@ VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="
             "oracle-sh": dict(oracle=True, sh_interval=33),
             "blur-only-sh": dict(event_loss=False, sh_interval=33),   # with blur+event-sh, oracle-sh: the
                                                                        # default schedule (auto) at 1000 steps
-            "blur+event-sh-map": dict(event_norm="noise", sh_interval=33, threshold_map=True),  # the default
-                                                                       # schedule with per-pixel thresholds
+            "blur+event-sh-mapprior": dict(event_norm="noise", sh_interval=33, threshold_map=True),
             # the EDI prior (--edi-prior W, W in units of the noise norm's default event weight 8/625), faded
             # out over the first half of the run; alone and with both options above
             "blur+event-edi": dict(event_norm="noise", edi_prior=8 / 625),
             "blur+event-hdr-sh-edi": dict(event_norm="noise", hdr=True, sh_interval=33, edi_prior=8 / 625),
             # both options with per-pixel thresholds, for the 40 % mismatch row
-            "blur+event-hdr-sh-map": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True),
+            "blur+event-hdr-sh-map": dict(event_norm="noise", hdr=True, sh_interval=33, **MAP),
             # the same with 17 sub-poses per exposure (the rendered sub-frames' count) instead of 5
-            "blur+event-hdr-sh-map@17": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True,
-                                             subposes=17),
+            "blur+event-hdr-sh-map@17": dict(event_norm="noise", hdr=True, sh_interval=33, subposes=17, **MAP),
             # each view's sub-poses from its motion: at most 2 px apart, up to 17 (--subpose-px 2)
             "blur+event-px2": dict(event_norm="noise", subposes=17, subpose_px=2.0),
-            "blur+event-hdr-sh-map-px2": dict(event_norm="noise", hdr=True, sh_interval=33, threshold_map=True,
-                                              subposes=17, subpose_px=2.0)}
+            "blur+event-hdr-sh-map-px2": dict(event_norm="noise", hdr=True, sh_interval=33, subposes=17,
+                                              subpose_px=2.0, **MAP)}
 # variants that never read the events: one run per seed, on the events-free cell
 SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh", "blur-only-sh")
 
