@@ -10,7 +10,7 @@ import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from ev3dgs.train.losses import FLOOR_MIN, noise_event_loss
+from ev3dgs.train.losses import FLOOR_MIN, count_variance, noise_event_loss
 from ev3dgs.train.threshold_map import ThresholdMap
 
 H, W = 32, 32
@@ -185,3 +185,28 @@ def test_map_and_event_term_finite_with_finite_gradients(theta, s, count, scale,
     assert torch.isfinite(tmap.multiplier).all() and torch.isfinite(tmap.spread).all()
     assert ((tmap.multiplier >= 0.2) & (tmap.multiplier <= 5.0)).all()
     assert (tmap.spread <= s * (1 + 1e-5)).all()
+
+
+@settings(max_examples=50, deadline=None)
+@given(tp=st.floats(0.01, 1.0), tn=st.floats(0.01, 1.0), s=st.floats(0.01, 1.0), seed=st.integers(0, 2 ** 16))
+def test_mismatch_variance_joint_without_a_spread_independent_with_one(tp, tn, s, seed):
+    """count_variance's two forms, written out in numpy for random cumulative counts: without ``spread`` the
+    noise norm's theta^2 / 6 + (s (tp n_on + tn n_off))^2, the ON and OFF errors of a pixel taken as one; with a
+    spread map of s everywhere theta^2 / 6 + (s tp n_on)^2 + (s tn n_off)^2, which is never larger (the
+    cross term 2 s^2 tp tn n_on n_off >= 0) and smaller exactly where a pixel fired both ways in the pair."""
+    rng = np.random.default_rng(seed)
+    counts = np.cumsum(rng.integers(0, 4, (4, 2, 3, 5)), axis=0).astype(np.float64)
+    idx = torch.tensor([[0, 1], [0, 3], [1, 2], [2, 3]])
+    n = np.abs(counts[idx[:, 1]] - counts[idx[:, 0]])
+    base = 0.5 * (tp * tp + tn * tn) / 6.0
+    joint = base + (s * (tp * n[:, 0] + tn * n[:, 1])) ** 2
+    indep = base + (s * tp * n[:, 0]) ** 2 + (s * tn * n[:, 1]) ** 2
+    c = torch.tensor(counts)
+    t_p, t_n = torch.tensor(tp, dtype=torch.float64), torch.tensor(tn, dtype=torch.float64)
+    got_joint = count_variance(c, idx, t_p, t_n, s).numpy()
+    got_indep = count_variance(c, idx, t_p, t_n, 0.7, spread=torch.full((2, 3, 5), s, dtype=torch.float64)).numpy()
+    # float64 sums of a few products: rounding ~1e-15 relative
+    assert got_joint == pytest.approx(joint, rel=1e-12) and got_indep == pytest.approx(indep, rel=1e-12)
+    both = (n[:, 0] > 0) & (n[:, 1] > 0)
+    # the cross term is at least 2 (0.01 * 0.01)^2 = 2e-8 where both fired, far above the rounding
+    assert (got_indep <= got_joint * (1 + 1e-12)).all() and (got_indep[both] < got_joint[both]).all()

@@ -197,6 +197,47 @@ def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_
         cfg(scene_path, threshold_map=True, event_norm="count")
 
 
+def test_map_weights_prior_weighs_the_first_step_as_without_a_map_and_posterior_no_less(scene_path, tmp_path):
+    """The map starts at the nominal thresholds (multipliers 1) with the prior's spread s everywhere. With
+    --map-weights prior the events' variance is the noise norm's, so the first step's event term is the one
+    without a map, to the bit. With posterior the mismatch variance is (s theta n_on)^2 + (s theta n_off)^2,
+    never above the noise norm's (s theta (n_on + n_off))^2 (a^2 + b^2 <= (a + b)^2 for a, b >= 0; the forms
+    themselves: test_threshold_map), so the term is no smaller. After the first step the map moves the
+    thresholds (prior leaves plain) and shrinks the spread where the counts inform it (posterior leaves
+    prior)."""
+    first, runs = {}, {}
+    for name, extra in (("plain", {}), ("prior", {"threshold_map": True}),
+                        ("posterior", {"threshold_map": True, "map_weights": "posterior"})):
+        runs[name] = tr = Trainer(cfg(scene_path, iterations=8, event_mismatch=0.3, **extra), tmp_path / name,
+                                  quiet=True)
+        tr.fit()
+        log = [json.loads(line) for line in (tmp_path / name / "log.jsonl").read_text().splitlines()]
+        first[name] = log[0]["event"]
+    assert first["prior"] == first["plain"] > 0
+    assert first["posterior"] >= first["prior"]
+    means = {name: tr.model.params["means"] for name, tr in runs.items()}
+    assert not torch.equal(means["prior"], means["plain"])
+    assert not torch.equal(means["posterior"], means["prior"])
+
+
+def test_a_saved_config_without_map_weights_loads_as_the_posterior_weighting_it_was_made_with(tmp_path):
+    """Runs saved before --map-weights existed weighed a threshold map's events by its posterior spread:
+    resuming one keeps that (config.LEGACY_VALUES); a new config defaults to the prior."""
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"scene": "s.h5", "event_norm": "noise", "threshold_map": True}))
+    assert TrainConfig.load(path).map_weights == "posterior"
+    assert TrainConfig(scene="s.h5", threshold_map=True).map_weights == "prior"
+
+
+def test_map_weights_without_a_map_or_unknown_is_one_line_exit_2(scene_path, tmp_path, capsys):
+    for argv, msg in ((["--map-weights", "posterior"], "give --threshold-map too"),
+                      (["--threshold-map", "--map-weights", "fitted"], "invalid choice")):
+        assert exit_code(cli.main, ["train", scene_path, "--out", str(tmp_path / "r"), *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and msg in err
+    assert not (tmp_path / "r").exists()
+
+
 def test_the_sh_degree_rises_every_sh_interval_steps(scene_path, tmp_path):
     """Degree 0 for the first interval, one more per interval after, capped at --sh-degree."""
     seen = []
@@ -300,10 +341,10 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
                                       if isinstance(v, torch.Tensor))
 
 
-@pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"], ["--blur-space", "linear", "--learn-thresholds",
-                                                                      "--event-pairs", "3", "--threshold-map", "--hdr",
-                                                                      "--sh-interval", "4", "--edi-prior", "0.02",
-                                                                      "--subposes", "7", "--subpose-px", "0.5"],
+@pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"],
+                                   ["--blur-space", "linear", "--learn-thresholds", "--event-pairs", "3",
+                                    "--threshold-map", "--map-weights", "posterior", "--hdr", "--sh-interval", "4",
+                                    "--edi-prior", "0.02", "--subposes", "7", "--subpose-px", "0.5"],
                                    ["--hdr", "--learn-response", "--event-pairs", "2", "--frame-noise", "2.5"],
                                    pytest.param(["--refine-poses", "--subposes", "9", "--subpose-px", "0.5"],
                                                 marks=pytest.mark.slow)])
