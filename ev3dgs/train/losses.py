@@ -304,10 +304,10 @@ def count_variance(counts: torch.Tensor, idx: torch.Tensor, tp: torch.Tensor, tn
     * noise events: each moves the estimate by a threshold; ``noise_events`` (pairs,) = expected noise events
       per pixel in each pair's window (Poisson): variance theta^2 times that.
 
-    ``spread`` (2, H, W), with a learned threshold map (train/threshold_map.py): each pixel's remaining
-    relative error of its ON and OFF thresholds, which are independent: the mismatch variance is then
-    (s_on theta_on n_on)^2 + (s_off theta_off n_off)^2 and ``rel_mismatch`` is not used. tp, tn may be
-    (H, W) maps.
+    ``spread`` (2, H, W), with a learned threshold map and --map-weights posterior (train/threshold_map.py):
+    each pixel's remaining relative error of its ON and OFF thresholds, which are independent: the mismatch
+    variance is then (s_on theta_on n_on)^2 + (s_off theta_off n_off)^2 and ``rel_mismatch`` is not used.
+    tp, tn may be (H, W) maps.
 
     counts: (K, 2, H, W) cumulative; idx: (P, 2) pose indices -> (P, H, W)."""
     c = counts.to(tp.dtype)

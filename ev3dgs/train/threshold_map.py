@@ -12,10 +12,14 @@ are the MAP estimate of a linear model, solved in closed form per pixel after ev
 over the consecutive sub-pose bins k of every view's latest visit: d the rendered log change of the bin,
 A = nominal threshold x the polarity's count in it, sigma^2 the quantisation plus the model's own error
 (the noise norm's floor, carried into log units by g = 1 / I^2 at the rendered intensities: see
-losses.noise_event_loss), s the relative mismatch. The posterior covariance (the 2 x 2 normal matrix's
-inverse) gives each pixel's remaining threshold error, which the event term's mismatch variance uses in
-place of s: (s_on theta_on n_on)^2 + (s_off theta_off n_off)^2 (losses.count_variance). A pixel that fired
-little keeps the nominal thresholds and the prior's spread.
+losses.noise_event_loss), s the relative mismatch. A pixel that fired little keeps the nominal thresholds.
+The posterior covariance (the 2 x 2 normal matrix's inverse) gives each pixel's remaining threshold error.
+By default (``--map-weights prior``) the event term still weighs the counts by the prior's mismatch
+variance, as without a map: the map changes the thresholds, not the weights. The posterior spread treats
+the model's error as independent between bins and views, which it is not (one model renders them all), and
+weighing by it (``--map-weights posterior``: (s_on theta_on n_on)^2 + (s_off theta_off n_off)^2 in place of
+the prior's, losses.count_variance) lost on two of the three built-in scenes with a mismatch where the
+prior's weights did not (docs/fidelity.md).
 
 Why closed form and not a gradient step per view: a per-element optimiser (Adam) moves every pixel by
 about its learning rate whatever the evidence, so pixels with little information drift with the noise of
