@@ -159,6 +159,34 @@ def test_thread_environment_does_not_change_a_bit(scene, tmp_path):
     assert_bitwise_equal(a, b)
 
 
+FIRST_RENDER = """
+import sys, torch
+torch.set_num_threads(1)
+from ev3dgs.geometry import intrinsics, look_at
+from ev3dgs.splat.model import GaussianModel
+from ev3dgs.splat.rasterize import rasterization
+
+m = GaussianModel.random_in_bounds([[-0.5] * 3, [0.5] * 3], 50, seed=0, sh_degree=0)
+vm = torch.as_tensor(look_at([0.0, -3.0, 0.5], [0, 0, 0]), dtype=torch.float32)
+K = torch.as_tensor(intrinsics(32, 24, 50.0), dtype=torch.float32)
+rasterization(m.means, m.quats_normalised, m.scales, m.opacities, m.sh, vm, K, 32, 24, sh_degree=0,
+              backend="cpu", threads=1)
+print(torch.get_num_threads())
+"""
+
+
+def test_the_first_render_of_a_process_leaves_torch_on_its_thread_count():
+    """numba's OpenMP pool starts at a process's first numba.set_num_threads, and starting it sets OpenMP's
+    thread count, which is torch's, to NUMBA_NUM_THREADS. The render before a training's first loss did that,
+    so the first step's torch reductions ran on NUMBA_NUM_THREADS threads and summed in another order (on a
+    96x72 scene the event term's floor estimate came out one bit apart, and the runs from there). A render
+    with one thread in a fresh process whose pool has two leaves torch on its one thread."""
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "NUMBA_NUM_THREADS": "2", "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-c", FIRST_RENDER], capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[-1] == "1"
+
+
 # ------------------------------------------------------------------------------------------------ resume
 def _cli(capsys, *args) -> tuple[int, str]:
     capsys.readouterr()

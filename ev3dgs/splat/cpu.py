@@ -36,7 +36,9 @@ Determinism: forward and backward are bitwise the same for any numba thread coun
 pixels and disjoint per-pair gradient slots; the per-Gaussian sum is serial, in tile-list order). One side
 effect had to be contained: numba's "omp" threading layer shares the OpenMP runtime with torch, and
 launching its thread pool sets OpenMP's thread count, i.e. torch's intra-op thread count, to numba's. The
-kernels are therefore called through `_parallel`, which puts torch's thread count back.
+kernels are therefore called through `_parallel`, which puts torch's thread count back, and numba's thread
+count is set through `set_numba_threads`: the first ``numba.set_num_threads`` of a process is what launches
+the pool (with NUMBA_NUM_THREADS threads), before any kernel runs.
 """
 from __future__ import annotations
 
@@ -149,6 +151,16 @@ def _parallel(kernel, *args):
     finally:
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
+
+
+def set_numba_threads(threads: int) -> None:
+    """numba's thread count for the kernels that follow (at most NUMBA_NUM_THREADS), torch's left as it was."""
+    before = torch.get_num_threads()
+    try:
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    finally:
+        if torch.get_num_threads() != before:
+            torch.set_num_threads(before)
 
 
 def _work_order(offsets: np.ndarray) -> np.ndarray:
@@ -268,7 +280,7 @@ def rasterize_cpu(means2d, conics, colors, opacities, depths, radii, width: int,
     if background is None:
         background = torch.zeros(colors.shape[-1], dtype=colors.dtype)
     if threads is not None:
-        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+        set_numba_threads(threads)
     batched = means2d.ndim == 3
     if not batched:
         means2d, conics, depths, radii = means2d[None], conics[None], depths[None], radii[None]

@@ -115,14 +115,12 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
 def _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, near_plane,
                        far_plane, eps2d, background, render_mode, threads):
     """numba projection + SH for all cameras in one call, then one batched rasterizer call."""
-    from .cpu import announce_compile, rasterize_cpu
+    from .cpu import announce_compile, rasterize_cpu, set_numba_threads
     from .project_cpu import project_sh_cpu
 
     announce_compile()
     if threads is not None:  # the projection kernel runs on the same numba thread count as the rasterizer
-        import numba
-
-        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+        set_numba_threads(threads)
     batched = viewmat.ndim == 3
     viewmats = viewmat if batched else viewmat[None]
     sh = colors if colors.ndim == 3 else None
