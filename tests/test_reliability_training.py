@@ -160,7 +160,7 @@ def test_thread_environment_does_not_change_a_bit(scene, tmp_path):
 
 
 FIRST_RENDER = """
-import sys, torch
+import torch
 torch.set_num_threads(1)
 from ev3dgs.geometry import intrinsics, look_at
 from ev3dgs.splat.model import GaussianModel
