@@ -141,10 +141,14 @@ def test_same_seed_same_bits_for_any_thread_count(scene, tmp_path, backend, iter
     assert_bitwise_equal(one, two)
 
 
-def _run_env(args: list[str], **env) -> subprocess.CompletedProcess:
+def _python(argv: list[str], **env) -> subprocess.CompletedProcess:
+    """A fresh Python process with ``env`` on top of this one's (fixed at process start, as numba needs)."""
     full = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", **env}
-    return subprocess.run([sys.executable, "-m", "ev3dgs.cli.main", *args], capture_output=True, text=True,
-                          env=full, timeout=600)
+    return subprocess.run([sys.executable, *argv], capture_output=True, text=True, env=full, timeout=600)
+
+
+def _run_env(args: list[str], **env) -> subprocess.CompletedProcess:
+    return _python(["-m", "ev3dgs.cli.main", *args], **env)
 
 
 def test_thread_environment_does_not_change_a_bit(scene, tmp_path):
@@ -181,8 +185,7 @@ def test_the_first_render_of_a_process_leaves_torch_on_its_thread_count():
     so the first step's torch reductions ran on NUMBA_NUM_THREADS threads and summed in another order (on a
     96x72 scene the event term's floor estimate came out one bit apart, and the runs from there). A render
     with one thread in a fresh process whose pool has two leaves torch on its one thread."""
-    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "NUMBA_NUM_THREADS": "2", "OMP_NUM_THREADS": "1"}
-    r = subprocess.run([sys.executable, "-c", FIRST_RENDER], capture_output=True, text=True, env=env, timeout=600)
+    r = _python(["-c", FIRST_RENDER], NUMBA_NUM_THREADS="2", OMP_NUM_THREADS="1")
     assert r.returncode == 0, r.stderr
     assert r.stdout.split()[-1] == "1"
 

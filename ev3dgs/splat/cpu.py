@@ -144,7 +144,8 @@ def announce_compile() -> None:
 
 
 def _parallel(kernel, *args):
-    """Run a parallel kernel without letting numba change torch's intra-op thread count (see above)."""
+    """Run a parallel kernel (or anything that may start numba's pool) without letting numba change torch's
+    intra-op thread count (see above)."""
     threads = torch.get_num_threads()
     try:
         return kernel(*args)
@@ -154,13 +155,9 @@ def _parallel(kernel, *args):
 
 
 def set_numba_threads(threads: int) -> None:
-    """numba's thread count for the kernels that follow (at most NUMBA_NUM_THREADS), torch's left as it was."""
-    before = torch.get_num_threads()
-    try:
-        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
-    finally:
-        if torch.get_num_threads() != before:
-            torch.set_num_threads(before)
+    """numba's thread count for the kernels that follow (at most NUMBA_NUM_THREADS), torch's left as it was
+    (a process's first call starts numba's pool: see above)."""
+    _parallel(numba.set_num_threads, max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
 
 
 def _work_order(offsets: np.ndarray) -> np.ndarray:

@@ -276,10 +276,10 @@ class Trainer:
                                       dtype=log_l.dtype, device=log_l.device) if self.noise_rate_hz > 0 else None)
                 tmap = self.threshold_map
                 tpm, tnm = (tp, tn) if tmap is None else tmap.thresholds(tp, tn)
-                spread = tmap.spread if tmap is not None and cfg.map_weights == "posterior" else None
+                posterior = tmap is not None and cfg.map_weights == "posterior"   # --map-weights
                 l_event, estimate = noise_event_loss(log_l, counts, pairs, tpm, tnm, data.count_convention,
                                                      self.rel_mismatch, noise, self.event_floor, data.log_knee,
-                                                     spread)
+                                                     tmap.spread if posterior else None)
                 self.event_floor = update_floor(self.event_floor, estimate)
                 if tmap is not None:  # this view's equations at the current render; the map solved again
                     tmap.update(v, data.bins[v][:k - 1], tp, tn, self.event_floor, log_l, data.log_knee)
@@ -288,7 +288,7 @@ class Trainer:
                     l_edi = edi_prior_loss(log_l, counts, self.edi[0][v], self.edi[1][v], tpm, tnm,
                                            self.event_floor, data.count_convention, self.rel_mismatch,
                                            self.noise_rate_hz, t, data.log_knee,
-                                           None if spread is None else tmap.spread)   # the map as updated
+                                           tmap.spread if posterior else None)   # the map as updated
                     loss = loss + cfg.edi_prior * fade * l_edi
             # --frame-noise: where the frames' noise is most of the blur term's error, the events weigh more
             w_blur = blur_weight(self.frame_noise_var, self.blur_mse)
