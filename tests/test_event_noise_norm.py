@@ -113,6 +113,35 @@ def test_floor_estimate_is_the_excess_over_the_count_noise_in_intensity_units():
 
 
 @settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), theta=st.floats(0.01, 1.0), rel=st.floats(0.0, 0.5),
+       n_pairs=st.integers(1, 4), outlier=st.floats(0.0, 1e4))
+def test_floor_estimate_is_the_mean_excess_computed_independently(seed, theta, rel, n_pairs, outlier):
+    """The step's floor estimate against numpy on the same samples: the mean over pairs and pixels of
+    (r^2 - v) / g, with v and g computed here from their definitions (asymmetric thresholds, mismatch, the
+    default knee) and one pixel the model renders far off. In double: a sample is a few operations on values
+    up to max |x| (a few ulps of it), the mean adds n of them."""
+    rng = np.random.default_rng(seed)
+    K, H, W = 5, 4, 5
+    log_np = rng.normal(math.log(0.3), 0.5, (K, H, W))
+    log_np[-1, 0, 0] += outlier ** 0.5
+    counts = rng.integers(0, 4, (K, 2, H, W)).cumsum(0)
+    pairs = [(a, b) for a in range(K) for b in range(a + 1, K)][:n_pairs]
+    tp, tn = theta, 1.3 * theta
+    _, got = noise_event_loss(torch.from_numpy(log_np), torch.from_numpy(counts), pairs, tp, tn,
+                              rel_mismatch=rel, floor=1.0)
+    x = []
+    for a, b in pairs:
+        d = (log_np[b] - log_np[a]) - (tp * (counts[b, 0] - counts[a, 0]) - tn * (counts[b, 1] - counts[a, 1]))
+        n_on, n_off = np.abs(counts[b, 0] - counts[a, 0]), np.abs(counts[b, 1] - counts[a, 1])
+        v = 0.5 * (tp ** 2 + tn ** 2) / 6 + (rel * (tp * n_on + tn * n_off)) ** 2
+        inv2 = np.exp(log_np).clip(min=1e-3) ** -2
+        g = 0.5 * (inv2[a] + inv2[b])
+        x.append(((d * d - v) / g).ravel())
+    x = np.concatenate(x)
+    assert got == pytest.approx(float(np.mean(x)), rel=1e-12, abs=1e-12 * float(np.abs(x).max()))
+
+
+@settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), theta=st.floats(1e-3, 2.0), rel=st.floats(0.0, 1.0),
        scale=st.sampled_from([0.0, 1e-6, 1.0, 1e3]), floor=st.one_of(st.none(), st.floats(FLOOR_MIN, 10.0)))
 def test_noise_loss_finite_with_finite_bounded_gradients(seed, theta, rel, scale, floor):
