@@ -88,7 +88,9 @@ def main(argv=None) -> int:
                          "out": str(a.cache / "runs" / path.stem / f"exact_thresholds_s{seed}")})
     runs = run_parallel(_run, jobs, a.jobs, lambda r: print(json.dumps(r), flush=True) or r)
     a.json.parent.mkdir(parents=True, exist_ok=True)
-    a.json.write_text(json.dumps({"settings": {k: str(v) for k, v in vars(a).items()}, "runs": runs}, indent=2))
+    settings = {"scenes": a.scenes, "seeds": a.seeds, "iterations": a.iterations, "views": "24 + 8",
+                "size": "96x72", "dataset_seed": 0}
+    a.json.write_text(json.dumps({"settings": settings, "runs": runs}, indent=2))
     print(f"-> {a.json}")
     return 0
 
