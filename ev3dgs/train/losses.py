@@ -322,6 +322,24 @@ def count_variance(counts: torch.Tensor, idx: torch.Tensor, tp: torch.Tensor, tn
     return v
 
 
+def noise_terms(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple[int, int]], tp: torch.Tensor,
+                tn: torch.Tensor, convention: str, rel_mismatch: float, noise_events: torch.Tensor | None,
+                knee: float | None, spread: torch.Tensor | None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The pieces of :func:`noise_event_loss` for a non-empty ``pairs``, each (P, H, W): the residual r (with
+    its gradient), the counts' variance v (count_variance) and g, which carries the linear-intensity floor
+    into log units (detached; 1 with ``knee`` None). tp, tn: the thresholds as tensors (scalars or maps)."""
+    residual, idx = _pair_residuals(log_l, counts, pairs, tp, tn, convention)
+    v = count_variance(counts, idx, tp.detach(), tn.detach(), rel_mismatch, noise_events, spread)
+    with torch.no_grad():
+        if knee is None:
+            g = torch.ones_like(v)
+        else:
+            inv2 = log_l.detach().exp().clamp(min=knee) ** -2
+            g = 0.5 * (inv2.index_select(0, idx[:, 0]) + inv2.index_select(0, idx[:, 1]))
+    return residual, v, g
+
+
 def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple[int, int]], theta_pos,
                      theta_neg, convention: str = "random_phase", rel_mismatch: float = 0.1,
                      noise_events: torch.Tensor | None = None, floor: float | None = None,
@@ -351,14 +369,9 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     tp, tn = _thetas(theta_pos, theta_neg, log_l)
     if len(pairs) == 0:
         return log_l.sum() * 0.0, FLOOR_MIN
-    residual, idx = _pair_residuals(log_l, counts, pairs, tp, tn, convention)
-    v = count_variance(counts, idx, tp.detach(), tn.detach(), rel_mismatch, noise_events, spread)
+    residual, v, g = noise_terms(log_l, counts, pairs, tp, tn, convention, rel_mismatch, noise_events, knee,
+                                 spread)
     with torch.no_grad():
-        if knee is None:
-            g = torch.ones_like(v)
-        else:
-            inv2 = log_l.detach().exp().clamp(min=knee) ** -2
-            g = 0.5 * (inv2.index_select(0, idx[:, 0]) + inv2.index_select(0, idx[:, 1]))
         estimate = float(torch.mean((residual * residual - v) / g))
     if floor is None:
         floor = max(estimate, FLOOR_MIN) if math.isfinite(estimate) else FLOOR_MIN

@@ -60,11 +60,9 @@ def _patch(floor_stat: str, c: float, blur_densify: bool) -> None:
     def event_loss(log_l, counts, pairs, theta_pos, theta_neg, convention="random_phase", rel_mismatch=0.1,
                    noise_events=None, floor=None, knee=losses.DEFAULT_LOG_KNEE, spread=None):
         tp, tn = losses._thetas(theta_pos, theta_neg, log_l)
-        residual, idx = losses._pair_residuals(log_l, counts, pairs, tp, tn, convention)
-        v = losses.count_variance(counts, idx, tp.detach(), tn.detach(), rel_mismatch, noise_events, spread)
+        residual, v, g = losses.noise_terms(log_l, counts, pairs, tp, tn, convention, rel_mismatch, noise_events,
+                                            knee, spread)
         with torch.no_grad():
-            inv2 = log_l.detach().exp().clamp(min=knee) ** -2
-            g = 0.5 * (inv2.index_select(0, idx[:, 0]) + inv2.index_select(0, idx[:, 1]))
             excess = (residual * residual - v) / g
             estimate = float(excess.median() if floor_stat == "median" else excess.mean())
         if floor is None:

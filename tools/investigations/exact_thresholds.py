@@ -38,6 +38,9 @@ def drawn_multipliers(scene: str, height: int, width: int) -> np.ndarray:
     return np.stack([sim.c_on / dvs.pos_threshold, sim.c_off / dvs.neg_threshold]).reshape(2, height, width)
 
 
+_ORIGINAL: dict = {}
+
+
 def _run(job: dict) -> dict:
     """One training in a pool worker (one thread), the map held at the drawn thresholds."""
     import torch
@@ -48,14 +51,13 @@ def _run(job: dict) -> dict:
     from ev3dgs.train.trainer import Trainer
 
     torch.set_num_threads(1)
-    solve = tm.ThresholdMap.__dict__.get("_fitted_calibrate", tm.ThresholdMap._calibrate)  # a worker's 2nd job
+    solve = _ORIGINAL.setdefault("calibrate", tm.ThresholdMap._calibrate)   # a worker's later job: not a wrapper
     true = torch.from_numpy(drawn_multipliers(job["scene"], job["height"], job["width"]))
 
     def calibrate(self, m, informed):   # the fit as usual, then the multipliers replaced by the truth
         solve(self, m, informed)
         self.multiplier = true.to(self.stats.dtype)
 
-    tm.ThresholdMap._fitted_calibrate = solve
     tm.ThresholdMap._calibrate = calibrate
     out = Path(job["out"])
     cfg = TrainConfig(scene=job["path"], iterations=job["iterations"], init_points=5000, seed=job["seed"],

@@ -49,10 +49,7 @@ def measure(run: Path, steps: int) -> dict:
     def spy(log_l, counts, pairs, theta_pos, theta_neg, convention, rel, noise, floor, knee, spread=None):
         with torch.no_grad():
             tp, tn = losses._thetas(theta_pos, theta_neg, log_l)
-            r, idx = losses._pair_residuals(log_l.detach(), counts, pairs, tp, tn, convention)
-            v = losses.count_variance(counts, idx, tp, tn, rel, noise, spread)
-            inv2 = log_l.detach().exp().clamp(min=knee) ** -2
-            g = 0.5 * (inv2.index_select(0, idx[:, 0]) + inv2.index_select(0, idx[:, 1]))
+            r, v, g = losses.noise_terms(log_l.detach(), counts, pairs, tp, tn, convention, rel, noise, knee, spread)
             seen.append(tail_summary((r * r - v) / g))
         return real(log_l, counts, pairs, theta_pos, theta_neg, convention, rel, noise, floor, knee, spread)
 
