@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ev3dgs.train.losses import (FLOOR_MIN, count_variance, noise_event_loss, pose_event_loss,
+from ev3dgs.train.losses import (FLOOR_MIN, count_variance, huber, noise_event_loss, pose_event_loss,
                                  update_floor)
 
 
@@ -114,12 +114,16 @@ def test_floor_estimate_is_the_excess_over_the_count_noise_in_intensity_units():
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), theta=st.floats(0.01, 1.0), rel=st.floats(0.0, 0.5),
-       n_pairs=st.integers(1, 4), outlier=st.floats(0.0, 1e4))
-def test_floor_estimate_is_the_mean_excess_computed_independently(seed, theta, rel, n_pairs, outlier):
-    """The step's floor estimate against numpy on the same samples: the mean over pairs and pixels of
-    (r^2 - v) / g, with v and g computed here from their definitions (asymmetric thresholds, mismatch, the
-    default knee) and one pixel the model renders far off. In double: a sample is a few operations on values
-    up to max |x| (a few ulps of it), the mean adds n of them."""
+       n_pairs=st.integers(1, 4), outlier=st.floats(0.0, 1e4), stat=st.sampled_from(["mean", "median"]),
+       c=st.sampled_from([0.0, 0.5, 3.0]))
+def test_floor_estimate_and_loss_computed_independently(seed, theta, rel, n_pairs, outlier, stat, c):
+    """The step's floor estimate and loss against numpy on the same samples: the mean (or the lower median:
+    the middle value of an odd count, the lower of the two middle ones of an even count) over pairs and
+    pixels of (r^2 - v) / g, with v and g computed here from their definitions (asymmetric thresholds,
+    mismatch, the default knee) and one pixel the model renders far off; the loss is the mean of
+    x = r^2 / (v + g), Huber-penalised beyond c: x, or 2 c sqrt(x) - c^2. In double: a sample is a few
+    operations on values up to max |x| (a few ulps of it), the mean adds n of them; the median is one of
+    the samples."""
     rng = np.random.default_rng(seed)
     K, H, W = 5, 4, 5
     log_np = rng.normal(math.log(0.3), 0.5, (K, H, W))
@@ -127,9 +131,9 @@ def test_floor_estimate_is_the_mean_excess_computed_independently(seed, theta, r
     counts = rng.integers(0, 4, (K, 2, H, W)).cumsum(0)
     pairs = [(a, b) for a in range(K) for b in range(a + 1, K)][:n_pairs]
     tp, tn = theta, 1.3 * theta
-    _, got = noise_event_loss(torch.from_numpy(log_np), torch.from_numpy(counts), pairs, tp, tn,
-                              rel_mismatch=rel, floor=1.0)
-    x = []
+    loss, got = noise_event_loss(torch.from_numpy(log_np), torch.from_numpy(counts), pairs, tp, tn,
+                                 rel_mismatch=rel, floor=1.0, floor_stat=stat, huber_c=c)
+    x, chi = [], []
     for a, b in pairs:
         d = (log_np[b] - log_np[a]) - (tp * (counts[b, 0] - counts[a, 0]) - tn * (counts[b, 1] - counts[a, 1]))
         n_on, n_off = np.abs(counts[b, 0] - counts[a, 0]), np.abs(counts[b, 1] - counts[a, 1])
@@ -137,23 +141,30 @@ def test_floor_estimate_is_the_mean_excess_computed_independently(seed, theta, r
         inv2 = np.exp(log_np).clip(min=1e-3) ** -2
         g = 0.5 * (inv2[a] + inv2[b])
         x.append(((d * d - v) / g).ravel())
-    x = np.concatenate(x)
-    assert got == pytest.approx(float(np.mean(x)), rel=1e-12, abs=1e-12 * float(np.abs(x).max()))
+        chi.append((d * d / (v + g)).ravel())
+    x, chi = np.concatenate(x), np.concatenate(chi)
+    want = float(np.mean(x)) if stat == "mean" else float(np.sort(x)[(x.size - 1) // 2])
+    assert got == pytest.approx(want, rel=1e-12, abs=1e-12 * float(np.abs(x).max()))
+    pen = chi if c == 0 else np.where(chi <= c * c, chi, 2 * c * np.sqrt(chi) - c * c)
+    assert float(loss) == pytest.approx(float(np.mean(pen)), rel=1e-12, abs=1e-12 * float(pen.max()))
 
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), theta=st.floats(1e-3, 2.0), rel=st.floats(0.0, 1.0),
-       scale=st.sampled_from([0.0, 1e-6, 1.0, 1e3]), floor=st.one_of(st.none(), st.floats(FLOOR_MIN, 10.0)))
-def test_noise_loss_finite_with_finite_bounded_gradients(seed, theta, rel, scale, floor):
-    """Any threshold, mismatch and residual size: finite, non-negative loss and finite gradients, and the
-    gradient per residual is bounded by 2 r / floor (never 1 / theta^2)."""
+       scale=st.sampled_from([0.0, 1e-6, 1.0, 1e3]), floor=st.one_of(st.none(), st.floats(FLOOR_MIN, 10.0)),
+       stat=st.sampled_from(["mean", "median"]), c=st.sampled_from([0.0, 3.0]))
+def test_noise_loss_finite_with_finite_bounded_gradients(seed, theta, rel, scale, floor, stat, c):
+    """Any threshold, mismatch, residual size, floor statistic and penalty: finite, non-negative loss and
+    finite gradients, and the gradient per residual is bounded by 2 r / floor (never 1 / theta^2), and with
+    the Huber penalty also by 2 c / sqrt(floor), whatever r."""
     g = torch.Generator().manual_seed(seed)
     K, H, W = 4, 6, 5
     log_l = (torch.randn(K, H, W, generator=g, dtype=torch.float64) * scale).requires_grad_(True)
-    c = torch.randint(0, 50, (K, 2, H, W), generator=g).cumsum(0)
+    counts = torch.randint(0, 50, (K, 2, H, W), generator=g).cumsum(0)
     tp = torch.tensor(theta, dtype=torch.float64, requires_grad=True)
     pairs = [(0, 1), (1, 3), (0, 3)]
-    loss, est = noise_event_loss(log_l, c, pairs, tp, tp * 1.3, rel_mismatch=rel, floor=floor, knee=None)
+    loss, est = noise_event_loss(log_l, counts, pairs, tp, tp * 1.3, rel_mismatch=rel, floor=floor, knee=None,
+                                 floor_stat=stat, huber_c=c)
     loss.backward()
     assert math.isfinite(float(loss.detach())) and float(loss.detach()) >= 0
     assert torch.isfinite(log_l.grad).all() and torch.isfinite(tp.grad)
@@ -161,10 +172,25 @@ def test_noise_loss_finite_with_finite_bounded_gradients(seed, theta, rel, scale
     # d loss / d log_l[k] = sum over the pairs holding k of +-2 r / (v + f) / n, |r| <= max |r|
     n = len(pairs) * H * W
     with torch.no_grad():
-        d = log_l - (tp * c[:, 0] - tp * 1.3 * c[:, 1])
+        d = log_l - (tp * counts[:, 0] - tp * 1.3 * counts[:, 1])
         r = torch.stack([d[b] - d[a] for a, b in pairs])
-    bound = 2 * 2 * float(r.abs().max()) / f / n          # every pose is in at most two of the pairs
+    per = 2 * float(r.abs().max()) / f
+    if c > 0:   # beyond c: d/dr (2 c |r| / s - c^2) = 2 c / s, s = sqrt(v + f) >= sqrt(f)
+        per = min(per, 2 * c / math.sqrt(f))
+    bound = 2 * per / n          # every pose is in at most two of the pairs
     assert float(log_l.grad.abs().max()) <= bound * (1 + 1e-9) + 1e-300
+
+
+def test_huber_is_the_square_within_c_and_linear_in_the_residual_beyond():
+    """x <= c^2: x; beyond, 2 c sqrt(x) - c^2, which meets x at c^2 with the same slope (1) and at x = 4 c^2
+    is 3 c^2; c = 0 leaves x as it is."""
+    c = 3.0
+    x = torch.tensor([0.0, 4.0, 9.0, 36.0, 1e6], dtype=torch.float64)
+    assert huber(x, c).tolist() == pytest.approx([0.0, 4.0, 9.0, 27.0, 6e3 - 9.0], rel=1e-15)
+    t = torch.tensor([9.0 - 1e-6, 9.0 + 1e-6], dtype=torch.float64)
+    slopes = (huber(t + 1e-7, c) - huber(t, c)) / 1e-7
+    assert slopes.tolist() == pytest.approx([1.0, 1.0], abs=1e-6)
+    assert torch.equal(huber(x, 0.0), x)
 
 
 def test_noise_loss_rejects_bad_arguments():
@@ -176,5 +202,9 @@ def test_noise_loss_rejects_bad_arguments():
         noise_event_loss(log_l, c, [(0, 1)], 0.2, 0.2, floor=0.0)
     with pytest.raises(ValueError):
         noise_event_loss(log_l[0], c, [(0, 1)], 0.2, 0.2)
+    with pytest.raises(ValueError):
+        noise_event_loss(log_l, c, [(0, 1)], 0.2, 0.2, floor_stat="mode")
+    with pytest.raises(ValueError):
+        noise_event_loss(log_l, c, [(0, 1)], 0.2, 0.2, huber_c=float("nan"))
     loss, _ = noise_event_loss(log_l, c, [], 0.2, 0.2)
     assert float(loss) == 0.0

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..train.config import EVENT_WEIGHTS, MAP_WEIGHTS
+from ..train.config import DENSIFY_FROM, EVENT_WEIGHTS, FLOOR_STATS, MAP_WEIGHTS
 from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 
@@ -109,7 +109,8 @@ def _train(args) -> int:
         scene=os.path.abspath(args.scene), iterations=args.iterations, subposes=args.subposes,
         subpose_px=args.subpose_px, event_weight=args.event_weight,
         event_norm=args.event_norm, event_mismatch=args.event_mismatch,
-        event_pairs=args.event_pairs, frame_noise=args.frame_noise, naive=args.naive,
+        event_pairs=args.event_pairs, event_floor=args.event_floor, event_huber=args.event_huber,
+        densify_from=args.densify_from, frame_noise=args.frame_noise, naive=args.naive,
         event_loss=not args.no_event_loss,
         blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
         learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, map_weights=args.map_weights,
@@ -291,6 +292,17 @@ def build_parser():
     t.add_argument("--event-pairs", type=int, default=0,
                    help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs; a view "
                         "with fewer pairs (--subpose-px) uses all of them (default %(default)s)")
+    t.add_argument("--event-floor", choices=FLOOR_STATS, default="mean",
+                   help="--event-norm noise: the model's own error, which caps every pixel-pair's weight, from "
+                        "the mean or the median of the pixel-pairs' squared residual beyond the counts' noise; "
+                        "the mean is set by the few pixels the model cannot render (default %(default)s)")
+    t.add_argument("--event-huber", type=finite_float, default=0.0, metavar="C",
+                   help="--event-norm noise: event residuals beyond C standard deviations pull linearly, not "
+                        "quadratically (a Huber penalty); 0 = off (default %(default)s)")
+    t.add_argument("--densify-from", choices=DENSIFY_FROM, default="all",
+                   help="which loss's gradient decides where Gaussians are split and cloned: all of it, or the "
+                        "blur term alone, so the event term's weight does not (one more backward pass through "
+                        "the blur term per densifying step) (default %(default)s)")
     t.add_argument("--frame-noise", type=_frame_noise, default="auto", metavar="auto|SIGMA",
                    help="the blurry frames' noise, sigma in 8-bit levels: as the blur loss's error comes down to "
                         "that noise, which no model should fit, the event loss weighs up to 16 times more; 0 "

@@ -27,6 +27,8 @@ def with_legacy_values(data: dict) -> dict:
 EVENT_WEIGHTS = {"noise": 8.0 / 625.0, "count": 1.0 / 625.0}
 # what a threshold map (--threshold-map) gives the event term's mismatch variance (see threshold_map.py)
 MAP_WEIGHTS = ("prior", "posterior")
+FLOOR_STATS = ("mean", "median")   # --event-floor (losses.FLOOR_STATS)
+DENSIFY_FROM = ("all", "blur")      # --densify-from
 DEFAULT_REL_MISMATCH = 0.1   # sigma / theta assumed when the scene does not say (DAVIS346: a few hundredths
                              # of thresholds 0.1-0.3)
 
@@ -54,6 +56,12 @@ class TrainConfig:
     event_mismatch: float | None = None  # relative per-pixel threshold spread for the noise norm; None = the
                                       # scene's (simulated) or DEFAULT_REL_MISMATCH
     event_pairs: int = 0              # 0 = all pairs of the b+1 renders, k = k random pairs per step
+    event_floor: str = "mean"         # the noise norm's model floor per step: the "mean" or the "median" of
+                                      # the pixel-pairs' excess squared residual (losses.noise_event_loss)
+    event_huber: float = 0.0          # > 0: the noise norm's residuals beyond this many standard deviations
+                                      # pull as |r| (losses.huber); 0 = squared everywhere
+    densify_from: str = "all"         # densification statistics from the gradient of "all" the loss or of
+                                      # the "blur" term alone (one more backward pass through it per step)
     frame_noise: float | None = None  # the frames' noise sigma in 8-bit levels: the event weight grows as the
                                       # blur term's error comes down to that noise (frame_noise.py); None =
                                       # estimated from the frames; 0 = off
@@ -105,6 +113,12 @@ class TrainConfig:
         check(self.event_weight is None or self.event_weight >= 0, "--event-weight must be >= 0")
         check(self.event_norm in EVENT_WEIGHTS, f"--event-norm must be one of {', '.join(EVENT_WEIGHTS)}")
         check(self.event_mismatch is None or 0 <= self.event_mismatch <= 1, "--event-mismatch must be in [0, 1]")
+        check(self.event_floor in FLOOR_STATS, f"--event-floor must be one of {', '.join(FLOOR_STATS)}")
+        check(isinstance(self.event_huber, (int, float)) and 0 <= self.event_huber < float("inf"),
+              "--event-huber must be a number >= 0 (0: off)")
+        check(self.densify_from in DENSIFY_FROM, f"--densify-from must be one of {', '.join(DENSIFY_FROM)}")
+        for flag, on in (("--event-floor median", self.event_floor != "mean"), ("--event-huber", self.event_huber)):
+            check(not on or self.event_norm == "noise", f"{flag} needs --event-norm noise (it shapes the noise norm)")
         check(self.frame_noise is None or 0 <= self.frame_noise <= 255,
               "--frame-noise must be auto or a sigma in 8-bit levels in [0, 255]")
         check(not self.threshold_map or self.event_norm == "noise",

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 
 from ..logmap import DEFAULT_LOG_KNEE, safe_log_torch
 from ..sensor import LUMINANCE_WEIGHTS, cfa_channels
+from .config import FLOOR_STATS
 
 _BAYER = {"RGGB", "BGGR", "GRBG", "GBRG"}
 _SRGB_KNEE = 0.04045
@@ -340,11 +341,22 @@ def noise_terms(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple
     return residual, v, g
 
 
+def huber(x: torch.Tensor, c: float) -> torch.Tensor:
+    """A normalised squared residual x = r^2 / s^2 (>= 0) penalised as x within c standard deviations and
+    2 c |r| / s - c^2 beyond: continuous, with a continuous slope, so a residual past c s pulls as |r|, not
+    as r^2. c <= 0: x unchanged."""
+    if c <= 0:
+        return x
+    c2 = c * c
+    return torch.where(x <= c2, x, 2 * c * torch.sqrt(x.clamp(min=c2)) - c2)
+
+
 def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple[int, int]], theta_pos,
                      theta_neg, convention: str = "random_phase", rel_mismatch: float = 0.1,
                      noise_events: torch.Tensor | None = None, floor: float | None = None,
                      knee: float | None = DEFAULT_LOG_KNEE,
-                     spread: torch.Tensor | None = None) -> tuple[torch.Tensor, float]:
+                     spread: torch.Tensor | None = None, floor_stat: str = "mean",
+                     huber_c: float = 0.0) -> tuple[torch.Tensor, float]:
     """The event loss weighted by a noise model of the counts: mean over pairs and pixels of
 
         r^2 / (v + floor * g),   r = (log_l[k2] - log_l[k1]) - (E_k2 - E_k1)   (log units, as pose_event_loss)
@@ -360,8 +372,18 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     outgrow the blur loss (the count norm, residual / theta, grows as 1 / theta^2).
     Returns (loss, this step's floor estimate: the mean of (r^2 - v) / g, a detached float; update_floor
     bounds it). ``theta_pos``/``theta_neg`` may be (H, W) per-pixel maps and ``spread`` their remaining
-    relative error (count_variance)."""
+    relative error (count_variance).
+
+    ``floor_stat`` "median": the estimate is the median of (r^2 - v) / g instead of the mean. The mean is set
+    by the few pixel-pairs the model cannot render (a heavy tail) and caps every other pixel-pair's weight at
+    theirs; the median is the error of a typical pixel-pair. ``huber_c`` > 0: each r^2 / (v + floor g)
+    through :func:`huber`, so the pixel-pairs beyond huber_c standard deviations, which the median floor
+    weighs more, pull as |r|."""
     _check_event_shapes(log_l, counts)
+    if floor_stat not in FLOOR_STATS:
+        raise ValueError(f"floor_stat must be one of {', '.join(FLOOR_STATS)}, got {floor_stat!r}")
+    if not (huber_c >= 0 and math.isfinite(huber_c)):
+        raise ValueError(f"huber_c must be finite and >= 0, got {huber_c!r}")
     if not (rel_mismatch >= 0 and math.isfinite(rel_mismatch)):
         raise ValueError(f"rel_mismatch must be finite and >= 0, got {rel_mismatch!r}")
     if floor is not None and not (floor > 0 and math.isfinite(floor)):
@@ -372,10 +394,11 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     residual, v, g = noise_terms(log_l, counts, pairs, tp, tn, convention, rel_mismatch, noise_events, knee,
                                  spread)
     with torch.no_grad():
-        estimate = float(torch.mean((residual * residual - v) / g))
+        excess = (residual * residual - v) / g
+        estimate = float(torch.median(excess) if floor_stat == "median" else torch.mean(excess))
     if floor is None:
         floor = max(estimate, FLOOR_MIN) if math.isfinite(estimate) else FLOOR_MIN
-    loss = torch.mean(residual * residual / (v + floor * g))
+    loss = torch.mean(huber(residual * residual / (v + floor * g), huber_c))
     return loss, estimate
 
 

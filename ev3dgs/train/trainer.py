@@ -259,6 +259,7 @@ class Trainer:
             avg = self.response.inverse(avg)
         l_blur = average_loss(avg, target, cfg.ssim_lambda, clip=cfg.hdr)
         loss = l_blur
+        blur_grads = self._blur_grads(l_blur, infos)   # --densify-from blur
         l_event = l_edi = torch.zeros((), device=self.device)
         w_blur = 1.0
         if self.use_events:
@@ -279,7 +280,8 @@ class Trainer:
                 posterior = tmap is not None and cfg.map_weights == "posterior"   # --map-weights
                 l_event, estimate = noise_event_loss(log_l, counts, pairs, tpm, tnm, data.count_convention,
                                                      self.rel_mismatch, noise, self.event_floor, data.log_knee,
-                                                     tmap.spread if posterior else None)
+                                                     tmap.spread if posterior else None, cfg.event_floor,
+                                                     cfg.event_huber)
                 self.event_floor = update_floor(self.event_floor, estimate)
                 if tmap is not None:  # this view's equations at the current render; the map solved again
                     tmap.update(v, data.bins[v][:k - 1], tp, tn, self.event_floor, log_l, data.log_knee)
@@ -305,6 +307,8 @@ class Trainer:
         pose_info = self.pose_refiner.step(self.step) if self.pose_refiner is not None else {}
         refined = {}
         if cfg.densify:
+            for info, grad in zip(infos, blur_grads or ()):   # the statistics see the blur term's gradient only
+                info["means2d"].grad = grad
             refined = self.strategy.step_post_backward(self.model, self.optimizers, self.strategy_state,
                                                        self.step, infos)
         self.step += 1
@@ -333,6 +337,17 @@ class Trainer:
             for group in opt.param_groups:
                 out.update({id(p): p for p in group["params"]})
         return list(out.values())
+
+    def _blur_grads(self, l_blur: torch.Tensor, infos: list[dict]) -> tuple | None:
+        """--densify-from blur, while the strategy still densifies: the blur term's gradient at each render's
+        screen-space means (the strategy's statistics), so that the event term's weight, which grows with
+        the events' precision, does not decide how many Gaussians are split. None: the statistics come from
+        the whole loss's gradient, as the backward pass leaves it."""
+        if not (self.cfg.densify_from == "blur" and self.use_events and self.cfg.densify
+                and self.step < self.strategy.refine_stop):
+            return None
+        return torch.autograd.grad(l_blur, [info["means2d"] for info in infos], retain_graph=True,
+                                   allow_unused=True)
 
     def _guard(self, loss, l_blur, l_event) -> None:
         bad = not torch.isfinite(loss)

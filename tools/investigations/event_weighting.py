@@ -1,19 +1,19 @@
 """How much should the events weigh? The noise norm (losses.noise_event_loss) with its model floor, its penalty
-and the densification statistics changed, one at a time or together, without touching the trainer.
+and the densification statistics changed, one at a time or together (the trainer's options):
 
-* ``--floor median``: the floor f from each step's median excess residual instead of the mean (the mean is
-  set by the few pixel-pairs the model cannot render: floor_tail.py);
-* ``--huber C``: each pixel-pair's normalised residual x = r^2 / (v + f g) penalised as x within C standard
-  deviations and 2 C sqrt(x) - C^2 beyond (continuous, with a continuous slope), so that a pixel-pair the
-  model cannot fit pulls as |r|, not r^2; 0 = off;
-* ``--densify blur``: the densification statistics from the blur term's gradient alone (one more backward
-  pass through the blur loss per step), so that the event term's weight does not decide how many Gaussians
-  are split.
+* ``--floor median`` (--event-floor): the floor f from each step's median excess residual instead of the
+  mean (the mean is set by the few pixel-pairs the model cannot render: floor_tail.py);
+* ``--huber C`` (--event-huber): each pixel-pair's normalised residual x = r^2 / (v + f g) penalised as x
+  within C standard deviations and 2 C sqrt(x) - C^2 beyond, so that a pixel-pair the model cannot fit
+  pulls as |r|, not r^2; 0 = off;
+* ``--densify blur`` (--densify-from): the densification statistics from the blur term's gradient alone
+  (one more backward pass through the blur loss per step), so that the event term's weight does not decide
+  how many Gaussians are split.
 
 Cells are heldout_shake's (study_event_term's cache, ``t0.05_m0.1``: threshold 0.05, 10 % mismatch) or
 built-in scenes (bench_fidelity's cache, 24 + 8 views at 96x72); each run is scored on its file's blur and
 novel views, the defaults of both tools otherwise (the heldout cells at ``--sh-interval 33``, the default
-schedule at 1000 steps). With the defaults (mean, no Huber, all) it is the default trainer, bit for bit.
+schedule at 1000 steps).
 
     python tools/investigations/event_weighting.py --cells t0.05_m0.1 t0.1_m0 lego lowlight --seeds 0 \
         --floor median --huber 3 --densify blur --json tools/results/event_weighting_all.json
@@ -33,70 +33,6 @@ sys.path.insert(0, str(ROOT))
 from ev3dgs.train.jobs import run_parallel  # noqa: E402
 
 
-def huber(x, c: float):
-    """x (a normalised squared residual, >= 0) within c^2, 2 c sqrt(x) - c^2 beyond; c <= 0: x."""
-    import torch
-
-    if c <= 0:
-        return x
-    c2 = c * c
-    return torch.where(x <= c2, x, 2 * c * torch.sqrt(x.clamp(min=c2)) - c2)
-
-
-_ORIGINAL: dict = {}
-
-
-def _patch(floor_stat: str, c: float, blur_densify: bool) -> None:
-    """Replace the trainer's event loss and wrap its blur loss and the densification strategy (in this
-    process: a pool worker)."""
-    import torch
-
-    import ev3dgs.splat.strategy as strategy
-    import ev3dgs.train.losses as losses
-    import ev3dgs.train.trainer as trainer
-
-    hold = {"infos": [], "grads": None}
-
-    def event_loss(log_l, counts, pairs, theta_pos, theta_neg, convention="random_phase", rel_mismatch=0.1,
-                   noise_events=None, floor=None, knee=losses.DEFAULT_LOG_KNEE, spread=None):
-        tp, tn = losses._thetas(theta_pos, theta_neg, log_l)
-        residual, v, g = losses.noise_terms(log_l, counts, pairs, tp, tn, convention, rel_mismatch, noise_events,
-                                            knee, spread)
-        with torch.no_grad():
-            excess = (residual * residual - v) / g
-            estimate = float(excess.median() if floor_stat == "median" else excess.mean())
-        if floor is None:
-            floor = max(estimate, losses.FLOOR_MIN) if math.isfinite(estimate) else losses.FLOOR_MIN
-        return torch.mean(huber(residual * residual / (v + floor * g), c)), estimate
-
-    if not _ORIGINAL:   # a pool worker's later job wraps the originals again, not its earlier wrappers
-        _ORIGINAL.update(blur=trainer.average_loss, pre=strategy.DefaultStrategy.step_pre_backward,
-                         post=strategy.DefaultStrategy.step_post_backward)
-    blur_loss, pre, post = _ORIGINAL["blur"], _ORIGINAL["pre"], _ORIGINAL["post"]
-
-    def step_pre_backward(self, info):
-        hold["infos"].append(info)
-        return pre(self, info)
-
-    def average_loss(*args, **kwargs):   # the blur term; with --densify blur its gradient at the renders' means
-        out = blur_loss(*args, **kwargs)
-        if blur_densify:
-            hold["grads"] = torch.autograd.grad(out, [i["means2d"] for i in hold["infos"]], retain_graph=True,
-                                                allow_unused=True)
-        return out
-
-    def step_post_backward(self, model, optimizers, state, step, infos):
-        if hold["grads"] is not None:
-            for info, grad in zip(hold["infos"], hold["grads"]):
-                info["means2d"].grad = grad
-        hold["infos"], hold["grads"] = [], None
-        return post(self, model, optimizers, state, step, infos)
-
-    trainer.noise_event_loss, trainer.average_loss = event_loss, average_loss
-    strategy.DefaultStrategy.step_pre_backward = step_pre_backward
-    strategy.DefaultStrategy.step_post_backward = step_post_backward
-
-
 def _run(job: dict) -> dict:
     import torch
 
@@ -105,10 +41,10 @@ def _run(job: dict) -> dict:
     from ev3dgs.train.trainer import Trainer
 
     torch.set_num_threads(1)
-    _patch(job["floor"], job["huber"], job["densify"] == "blur")
     out = Path(job["out"])
     cfg = TrainConfig(scene=job["path"], iterations=job["iterations"], init_points=5000, seed=job["seed"],
-                      checkpoint_every=job["iterations"], threads=1, **job["overrides"])
+                      checkpoint_every=job["iterations"], threads=1, event_floor=job["floor"],
+                      event_huber=job["huber"], densify_from=job["densify"], **job["overrides"])
     t = time.perf_counter()
     Trainer(cfg, out, quiet=True).fit()
     m = evaluate(out, write_images=False)
