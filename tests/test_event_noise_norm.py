@@ -10,8 +10,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ev3dgs.train.losses import (FLOOR_MIN, count_variance, huber, noise_event_loss, pose_event_loss,
-                                 update_floor)
+from ev3dgs.train.losses import (FLOOR_MIN, chi2_floor, count_variance, huber, huber_mean, noise_event_loss,
+                                 pose_event_loss, update_floor)
 
 
 def _simulate_counts(rng, change, theta, rel):
@@ -191,6 +191,87 @@ def test_huber_is_the_square_within_c_and_linear_in_the_residual_beyond():
     slopes = (huber(t + 1e-7, c) - huber(t, c)) / 1e-7
     assert slopes.tolist() == pytest.approx([1.0, 1.0], abs=1e-6)
     assert torch.equal(huber(x, 0.0), x)
+
+
+@pytest.mark.parametrize("c", [0.5, 1.0, 3.0, 10.0])
+def test_huber_mean_is_the_gaussian_expectation(c):
+    """huber_mean(c) against a numerical integral of huber(z^2, c) over the standard normal density."""
+    from scipy.integrate import quad
+    from scipy.stats import norm
+
+    def rho(z):
+        return z * z if abs(z) <= c else 2 * c * abs(z) - c * c
+
+    want = 2 * (quad(lambda z: rho(z) * norm.pdf(z), 0, c)[0] + quad(lambda z: rho(z) * norm.pdf(z), c, np.inf)[0])
+    assert huber_mean(c) == pytest.approx(want, rel=1e-9)
+    assert huber_mean(0.0) == 1.0
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale=st.floats(1e-3, 1e2), tail=st.floats(0.0, 0.2),
+       c=st.sampled_from([0.0, 3.0]))
+def test_chi2_floor_is_the_root_found_independently(seed, scale, tail, c):
+    """chi2_floor against scipy's brentq on the same function, mean huber(r^2 / (v + f g), c) - huber_mean(c),
+    for residuals of a model error of known size (scale) with a share of them (tail) 30 times larger. The
+    bisection stops within 60 / 2^30 of the root in log f (relative 6e-8); brentq to 1e-12. Residuals the
+    counts' noise already explains give FLOOR_MIN."""
+    from scipy.optimize import brentq
+
+    rng = np.random.default_rng(seed)
+    n = 2000
+    v = rng.uniform(1e-3, 1e-2, n)
+    g = rng.uniform(0.5, 4.0, n)
+    sd = np.sqrt(v + scale * g) * np.where(rng.random(n) < tail, 30.0, 1.0)
+    r2 = (rng.normal(size=n) * sd) ** 2
+    T = (torch.from_numpy(x) for x in (r2, v, g))
+    got = chi2_floor(*T, c)
+
+    def h(logf):
+        x = r2 / (v + math.exp(logf) * g)
+        pen = x if c == 0 else np.where(x <= c * c, x, 2 * c * np.sqrt(x) - c * c)
+        return float(np.mean(pen)) - huber_mean(c)
+
+    if h(math.log(FLOOR_MIN)) <= 0:
+        assert got == FLOOR_MIN
+    else:
+        want = math.exp(brentq(h, math.log(FLOOR_MIN), math.log(float(np.max((r2 - v) / g))), xtol=1e-12))
+        assert got == pytest.approx(want, rel=1e-7)
+    quiet = chi2_floor(*(torch.from_numpy(x) for x in (0.5 * v, v, g)), c)   # every r^2 below v
+    assert quiet == FLOOR_MIN
+
+
+def test_chi2_floor_on_a_heavy_tail_is_the_population_root():
+    """The model error 1e-3 everywhere, 2 % of the pixel-pairs 100 times further off (a tail the model cannot
+    render), v = 1e-4, g = 1: the mean excess is pulled to ~ 1e-3 (1 + 0.02 * 1e4) = 0.2, the median stays
+    near 1e-3 times the median of a chi-square with one degree of freedom (0.45). The penalised chi-square
+    floor lies between them, where the population equation puts it: E huber(a z^2, c) with a = s^2 / (v + f)
+    in closed form (b = c / sqrt(a): a (1 - 2 (b phi(b) + Q(b))) + 2 (2 c sqrt(a) phi(b) - c^2 Q(b))), mixed
+    98 / 2 and solved by brentq. 50 000 samples, 1000 in the tail, whose mean |z| sets f through its square:
+    a relative sampling error of about 2 * 0.6 / sqrt(1000) = 4 %, so 15 % is over three of it."""
+    from scipy.optimize import brentq
+    from scipy.stats import norm
+
+    rng = np.random.default_rng(0)
+    n, c, v0 = 50_000, 3.0, 1e-4
+    s2 = np.where(rng.random(n) < 0.02, 1e4, 1.0) * 1e-3
+    r2 = torch.from_numpy(rng.normal(size=n) ** 2 * (s2 + v0))
+    v, g = torch.full((n,), v0, dtype=torch.float64), torch.ones(n, dtype=torch.float64)
+    excess = (r2 - v) / g
+    mean, median = float(excess.mean()), float(excess.median())
+    f = chi2_floor(r2, v, g, c)
+
+    def pop(a):
+        b = c / math.sqrt(a)
+        q = norm.sf(b)
+        return a * (1 - 2 * (b * norm.pdf(b) + q)) + 2 * (2 * c * math.sqrt(a) * norm.pdf(b) - c * c * q)
+
+    def h(logf):
+        fv = math.exp(logf) + v0
+        return 0.98 * pop((1e-3 + v0) / fv) + 0.02 * pop((10.0 + v0) / fv) - huber_mean(c)
+
+    want = math.exp(brentq(h, math.log(1e-4), math.log(100.0)))
+    assert median < 1e-3 < f < mean and mean > 0.1
+    assert f == pytest.approx(want, rel=0.15)
 
 
 def test_noise_loss_rejects_bad_arguments():

@@ -36,8 +36,9 @@ def test_blur_densification_sees_only_the_blur_gradient(scene_path, tmp_path):
     assert not torch.allclose(from_all, blur_only, rtol=1e-3, atol=0)
 
 
-def test_robust_event_options_train_finite_and_reproducible(scene_path, tmp_path):
-    opts = dict(iterations=40, event_floor="median", event_huber=3.0, densify_from="blur")
+@pytest.mark.parametrize("floor", ["median", "chi2"])
+def test_robust_event_options_train_finite_and_reproducible(scene_path, tmp_path, floor):
+    opts = dict(iterations=40, event_floor=floor, event_huber=3.0, densify_from="blur")
     runs = []
     for name in ("a", "b"):
         tr = Trainer(cfg(scene_path, **opts), tmp_path / name, quiet=True)
@@ -55,6 +56,7 @@ def test_robust_event_options_train_finite_and_reproducible(scene_path, tmp_path
 @pytest.mark.parametrize("bad", [dict(event_floor="mode"), dict(event_huber=-1.0),
                                  dict(event_huber=float("inf")), dict(densify_from="event"),
                                  dict(event_floor="median", event_norm="count"),
+                                 dict(event_floor="chi2", event_norm="count"),
                                  dict(event_huber=3.0, event_norm="count")])
 def test_bad_robust_event_options_are_refused(scene_path, bad):
     with pytest.raises(ConfigError):

@@ -293,9 +293,11 @@ def build_parser():
                    help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs; a view "
                         "with fewer pairs (--subpose-px) uses all of them (default %(default)s)")
     t.add_argument("--event-floor", choices=FLOOR_STATS, default="mean",
-                   help="--event-norm noise: the model's own error, which caps every pixel-pair's weight, from "
-                        "the mean or the median of the pixel-pairs' squared residual beyond the counts' noise; "
-                        "the mean is set by the few pixels the model cannot render (default %(default)s)")
+                   help="--event-norm noise: the model's own error, which caps every pixel-pair's weight: the "
+                        "mean or the median of the pixel-pairs' squared residual beyond the counts' noise, or "
+                        "chi2, the error at which their (--event-huber penalised) chi-square averages what the "
+                        "noise model expects; the mean is set by the few pixels the model cannot render "
+                        "(default %(default)s)")
     t.add_argument("--event-huber", type=finite_float, default=0.0, metavar="C",
                    help="--event-norm noise: event residuals beyond C standard deviations pull linearly, not "
                         "quadratically (a Huber penalty); 0 = off (default %(default)s)")

@@ -27,7 +27,7 @@ def with_legacy_values(data: dict) -> dict:
 EVENT_WEIGHTS = {"noise": 8.0 / 625.0, "count": 1.0 / 625.0}
 # what a threshold map (--threshold-map) gives the event term's mismatch variance (see threshold_map.py)
 MAP_WEIGHTS = ("prior", "posterior")
-FLOOR_STATS = ("mean", "median")   # --event-floor (losses.FLOOR_STATS)
+FLOOR_STATS = ("mean", "median", "chi2")   # --event-floor (losses.noise_event_loss)
 DENSIFY_FROM = ("all", "blur")      # --densify-from
 DEFAULT_REL_MISMATCH = 0.1   # sigma / theta assumed when the scene does not say (DAVIS346: a few hundredths
                              # of thresholds 0.1-0.3)
@@ -57,7 +57,8 @@ class TrainConfig:
                                       # scene's (simulated) or DEFAULT_REL_MISMATCH
     event_pairs: int = 0              # 0 = all pairs of the b+1 renders, k = k random pairs per step
     event_floor: str = "mean"         # the noise norm's model floor per step: the "mean" or the "median" of
-                                      # the pixel-pairs' excess squared residual (losses.noise_event_loss)
+                                      # the pixel-pairs' excess squared residual, or "chi2" (the floor at which
+                                      # their chi-square averages as expected: losses.chi2_floor)
     event_huber: float = 0.0          # > 0: the noise norm's residuals beyond this many standard deviations
                                       # pull as |r| (losses.huber); 0 = squared everywhere
     densify_from: str = "all"         # densification statistics from the gradient of "all" the loss or of

@@ -351,6 +351,46 @@ def huber(x: torch.Tensor, c: float) -> torch.Tensor:
     return torch.where(x <= c2, x, 2 * c * torch.sqrt(x.clamp(min=c2)) - c2)
 
 
+def huber_mean(c: float) -> float:
+    """E[huber(z^2, c)] for z ~ N(0, 1): what the penalised chi-square of one sample averages where the
+    residuals follow the noise model; 1 + 2 c phi(c) - 2 (1 + c^2) (1 - Phi(c)), 1 without the penalty."""
+    if c <= 0:
+        return 1.0
+    phi = math.exp(-0.5 * c * c) / math.sqrt(2 * math.pi)
+    tail = 0.5 * math.erfc(c / math.sqrt(2))
+    return 1.0 + 2 * c * phi - 2 * (1 + c * c) * tail
+
+
+CHI2_STEPS = 30   # bisection steps in log f: the bracket (at most ~60 in log units) to 1e-7 of itself
+
+
+def chi2_floor(r2: torch.Tensor, v: torch.Tensor, g: torch.Tensor, c: float) -> float:
+    """The floor f >= FLOOR_MIN at which the pixel-pairs' penalised chi-square, mean huber(r^2 / (v + f g), c),
+    averages what it would if the residuals followed the noise model (huber_mean): a robust scale estimate.
+    The mean excess makes every pixel-pair as uncertain as the tail the model cannot render; the median
+    ignores that tail altogether; this f grows only as far as the tail needs for the residuals, penalised,
+    to be as large as the model says. The mean is decreasing in f; at f = max (r^2 - v) / g every sample is at
+    most 1, so the root lies in [FLOOR_MIN, that]; found by bisection in log f (deterministic)."""
+    target = huber_mean(c)
+
+    def mean_chi2(f: float) -> float:
+        return float(torch.mean(huber(r2 / (v + f * g), c)))
+
+    top = float(torch.max((r2 - v) / g))
+    if not math.isfinite(top):   # a non-finite residual: no estimate (the trainer's NaN guard stops the step)
+        return float("nan")
+    if mean_chi2(FLOOR_MIN) <= target:
+        return FLOOR_MIN
+    lo, hi = math.log(FLOOR_MIN), math.log(max(top, FLOOR_MIN))
+    for _ in range(CHI2_STEPS):
+        mid = 0.5 * (lo + hi)
+        if mean_chi2(math.exp(mid)) > target:
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(hi)
+
+
 def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple[int, int]], theta_pos,
                      theta_neg, convention: str = "random_phase", rel_mismatch: float = 0.1,
                      noise_events: torch.Tensor | None = None, floor: float | None = None,
@@ -376,9 +416,10 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
 
     ``floor_stat`` "median": the estimate is the median of (r^2 - v) / g instead of the mean. The mean is set
     by the few pixel-pairs the model cannot render (a heavy tail) and caps every other pixel-pair's weight at
-    theirs; the median is the error of a typical pixel-pair. ``huber_c`` > 0: each r^2 / (v + floor g)
-    through :func:`huber`, so the pixel-pairs beyond huber_c standard deviations, which the median floor
-    weighs more, pull as |r|."""
+    theirs; the median is the error of a typical pixel-pair. "chi2": the floor at which the penalised
+    chi-square averages what the noise model says it should (:func:`chi2_floor`). ``huber_c`` > 0: each
+    r^2 / (v + floor g) through :func:`huber`, so the pixel-pairs beyond huber_c standard deviations, which a
+    lower floor weighs more, pull as |r|."""
     _check_event_shapes(log_l, counts)
     if floor_stat not in FLOOR_STATS:
         raise ValueError(f"floor_stat must be one of {', '.join(FLOOR_STATS)}, got {floor_stat!r}")
@@ -394,8 +435,12 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     residual, v, g = noise_terms(log_l, counts, pairs, tp, tn, convention, rel_mismatch, noise_events, knee,
                                  spread)
     with torch.no_grad():
-        excess = (residual * residual - v) / g
-        estimate = float(torch.median(excess) if floor_stat == "median" else torch.mean(excess))
+        r2 = residual * residual
+        if floor_stat == "chi2":
+            estimate = chi2_floor(r2, v, g, huber_c)
+        else:
+            excess = (r2 - v) / g
+            estimate = float(torch.median(excess) if floor_stat == "median" else torch.mean(excess))
     if floor is None:
         floor = max(estimate, FLOOR_MIN) if math.isfinite(estimate) else FLOOR_MIN
     loss = torch.mean(huber(residual * residual / (v + floor * g), huber_c))

@@ -59,7 +59,9 @@ VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blu
             "blur+event-response": dict(learn_response=True),
             "blur+event-hdr-response": dict(hdr=True, learn_response=True),
             # the events at their weight omega whatever the frames' noise (--frame-noise 0)
-            "blur+event-fn0": dict(frame_noise=0.0)}
+            "blur+event-fn0": dict(frame_noise=0.0),
+            # --event-floor chi2 --event-huber 3 --densify-from blur
+            "blur+event-robust": dict(event_floor="chi2", event_huber=3.0, densify_from="blur")}
 DEFAULT_VARIANTS = ("naive", "blur-only", "blur+event", "oracle")
 # The full table is sized so that a 2-core CPU finishes it in about an hour (48 runs, two at a time); the
 # issue's example size (128x96, 3000 steps) is ~4x that: --size 128x96 --steps 3000.

@@ -48,6 +48,7 @@ from pareto import save_json  # noqa: E402
 # the -map variants weigh the events by each pixel's fitted threshold spread (--map-weights posterior); the
 # -mapprior ones by the mismatch prior, as without a map (--threshold-map's default)
 MAP = dict(threshold_map=True, map_weights="posterior")
+ROBUST = dict(event_floor="chi2", event_huber=3.0, densify_from="blur")
 VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="noise"),
             "blur+event-count": dict(event_norm="count"), "oracle": dict(oracle=True),
             "blur+event-map": dict(event_norm="noise", **MAP),
@@ -71,7 +72,11 @@ VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="
             # each view's sub-poses from its motion: at most 2 px apart, up to 17 (--subpose-px 2)
             "blur+event-px2": dict(event_norm="noise", subposes=17, subpose_px=2.0),
             "blur+event-hdr-sh-map-px2": dict(event_norm="noise", hdr=True, sh_interval=33, subposes=17,
-                                              subpose_px=2.0, **MAP)}
+                                              subpose_px=2.0, **MAP),
+            # the floor at which the penalised chi-square averages as expected, a Huber penalty beyond 3
+            # standard deviations and densification from the blur term (--event-floor chi2 --event-huber 3
+            # --densify-from blur)
+            "blur+event-sh-robust": dict(event_norm="noise", sh_interval=33, **ROBUST)}
 # variants that never read the events: one run per seed, on the events-free cell
 SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh", "blur-only-sh")
 
