@@ -212,9 +212,10 @@ def test_huber_mean_is_the_gaussian_expectation(c):
        c=st.sampled_from([0.0, 3.0]))
 def test_chi2_floor_is_the_root_found_independently(seed, scale, tail, c):
     """chi2_floor against scipy's brentq on the same function, mean huber(r^2 / (v + f g), c) - huber_mean(c),
-    for residuals of a model error of known size (scale) with a share of them (tail) 30 times larger. The
-    bisection stops within 60 / 2^30 of the root in log f (relative 6e-8); brentq to 1e-12. Residuals the
-    counts' noise already explains give FLOOR_MIN."""
+    for residuals of a model error of known size (scale) with a share of them (tail) 30 times larger (2000
+    pixel-pairs: all of them are used); brentq to 1e-12. Residuals the
+    counts' noise already explains give FLOOR_MIN. From no start, from the root's neighbourhood and from far
+    off (safeguarded Newton in log f, stopped when a step is below 1e-3: f within 0.1 %)."""
     from scipy.optimize import brentq
 
     rng = np.random.default_rng(seed)
@@ -224,7 +225,8 @@ def test_chi2_floor_is_the_root_found_independently(seed, scale, tail, c):
     sd = np.sqrt(v + scale * g) * np.where(rng.random(n) < tail, 30.0, 1.0)
     r2 = (rng.normal(size=n) * sd) ** 2
     T = (torch.from_numpy(x) for x in (r2, v, g))
-    got = chi2_floor(*T, c)
+    T = tuple(T)
+    got = [chi2_floor(*T, c, start) for start in (None, scale, 1e-4 * scale, 1e4)]
 
     def h(logf):
         x = r2 / (v + math.exp(logf) * g)
@@ -232,10 +234,10 @@ def test_chi2_floor_is_the_root_found_independently(seed, scale, tail, c):
         return float(np.mean(pen)) - huber_mean(c)
 
     if h(math.log(FLOOR_MIN)) <= 0:
-        assert got == FLOOR_MIN
+        assert got == [FLOOR_MIN] * 4
     else:
         want = math.exp(brentq(h, math.log(FLOOR_MIN), math.log(float(np.max((r2 - v) / g))), xtol=1e-12))
-        assert got == pytest.approx(want, rel=1e-7)
+        assert got == pytest.approx([want] * 4, rel=1e-3)
     quiet = chi2_floor(*(torch.from_numpy(x) for x in (0.5 * v, v, g)), c)   # every r^2 below v
     assert quiet == FLOOR_MIN
 
@@ -246,8 +248,9 @@ def test_chi2_floor_on_a_heavy_tail_is_the_population_root():
     near 1e-3 times the median of a chi-square with one degree of freedom (0.45). The penalised chi-square
     floor lies between them, where the population equation puts it: E huber(a z^2, c) with a = s^2 / (v + f)
     in closed form (b = c / sqrt(a): a (1 - 2 (b phi(b) + Q(b))) + 2 (2 c sqrt(a) phi(b) - c^2 Q(b))), mixed
-    98 / 2 and solved by brentq. 50 000 samples, 1000 in the tail, whose mean |z| sets f through its square:
-    a relative sampling error of about 2 * 0.6 / sqrt(1000) = 4 %, so 15 % is over three of it."""
+    98 / 2 and solved by brentq. The root is taken from CHI2_SAMPLES (16 384) evenly strided pixel-pairs of
+    the 50 000, about 330 of them in the tail, whose mean |z| sets f through its square: a relative sampling
+    error of about 2 * 0.6 / sqrt(330) = 6.6 %, so 25 % is about four of it."""
     from scipy.optimize import brentq
     from scipy.stats import norm
 
@@ -271,7 +274,7 @@ def test_chi2_floor_on_a_heavy_tail_is_the_population_root():
 
     want = math.exp(brentq(h, math.log(1e-4), math.log(100.0)))
     assert median < 1e-3 < f < mean and mean > 0.1
-    assert f == pytest.approx(want, rel=0.15)
+    assert f == pytest.approx(want, rel=0.25)
 
 
 def test_noise_loss_rejects_bad_arguments():

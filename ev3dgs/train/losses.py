@@ -361,34 +361,63 @@ def huber_mean(c: float) -> float:
     return 1.0 + 2 * c * phi - 2 * (1 + c * c) * tail
 
 
-CHI2_STEPS = 30   # bisection steps in log f: the bracket (at most ~60 in log units) to 1e-7 of itself
+CHI2_TOL = 1e-3        # the root in log f to this (f to 0.1 %; the trainer averages f over steps anyway)
+CHI2_MAX_ITER = 60     # safeguarded Newton: a few steps from a warm start; bisection when Newton leaves the bracket
+CHI2_SAMPLES = 16384   # the root from at most this many pixel-pairs, evenly strided: a scale statistic
 
 
-def chi2_floor(r2: torch.Tensor, v: torch.Tensor, g: torch.Tensor, c: float) -> float:
+def chi2_floor(r2: torch.Tensor, v: torch.Tensor, g: torch.Tensor, c: float, start: float | None = None) -> float:
     """The floor f >= FLOOR_MIN at which the pixel-pairs' penalised chi-square, mean huber(r^2 / (v + f g), c),
     averages what it would if the residuals followed the noise model (huber_mean): a robust scale estimate.
     The mean excess makes every pixel-pair as uncertain as the tail the model cannot render; the median
     ignores that tail altogether; this f grows only as far as the tail needs for the residuals, penalised,
-    to be as large as the model says. The mean is decreasing in f; at f = max (r^2 - v) / g every sample is at
-    most 1, so the root lies in [FLOOR_MIN, that]; found by bisection in log f (deterministic)."""
+    to be as large as the model says.
+
+    The mean is decreasing in s = log f; at f = max (r^2 - v) / g every sample is at most 1, so the root lies
+    in [FLOOR_MIN, that]. Found by Newton's method in s from ``start`` (the previous floor; else the mean
+    excess), bisecting whenever a step leaves the bracket, to CHI2_TOL in s; on at most CHI2_SAMPLES
+    pixel-pairs (every k-th of the flattened arrays), deterministic."""
     target = huber_mean(c)
-
-    def mean_chi2(f: float) -> float:
-        return float(torch.mean(huber(r2 / (v + f * g), c)))
-
-    top = float(torch.max((r2 - v) / g))
+    k = -(-r2.numel() // CHI2_SAMPLES)
+    r2, v, g = (t.reshape(-1)[::k] for t in (r2, v, g))
+    excess = (r2 - v) / g
+    top = float(torch.max(excess))
     if not math.isfinite(top):   # a non-finite residual: no estimate (the trainer's NaN guard stops the step)
         return float("nan")
-    if mean_chi2(FLOOR_MIN) <= target:
-        return FLOOR_MIN
-    lo, hi = math.log(FLOOR_MIN), math.log(max(top, FLOOR_MIN))
-    for _ in range(CHI2_STEPS):
-        mid = 0.5 * (lo + hi)
-        if mean_chi2(math.exp(mid)) > target:
-            lo = mid
+    c2 = c * c
+
+    def h(s: float) -> tuple[float, float]:   # mean penalised chi-square - target, and its slope in s
+        fg = math.exp(s) * g
+        d = v + fg
+        x = r2 / d
+        if c > 0:
+            root = torch.sqrt(x)
+            inside = x <= c2
+            rho = torch.where(inside, x, (2 * c) * root - c2)
+            slope = torch.where(inside, x, c * root)   # x rho'(x)
         else:
-            hi = mid
-    return math.exp(hi)
+            rho = slope = x
+        return float(torch.mean(rho)) - target, -float(torch.mean(slope * fg / d))
+
+    lo, hi = math.log(FLOOR_MIN), math.log(max(top, FLOOR_MIN))
+    if h(lo)[0] <= 0:
+        return FLOOR_MIN
+    guess = start if start is not None and math.isfinite(start) and start > 0 else float(torch.mean(excess))
+    s = min(max(math.log(max(guess, FLOOR_MIN)), lo), hi)
+    for _ in range(CHI2_MAX_ITER):
+        val, slope = h(s)
+        if val > 0:
+            lo = s
+        else:
+            hi = s
+        step = -val / slope if slope < 0 else float("inf")
+        nxt = s + step
+        if not lo < nxt < hi:   # outside the bracket (or no slope): bisect
+            nxt = 0.5 * (lo + hi)
+        if abs(nxt - s) < CHI2_TOL or hi - lo < CHI2_TOL:
+            return math.exp(nxt)
+        s = nxt
+    return math.exp(0.5 * (lo + hi))
 
 
 def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[tuple[int, int]], theta_pos,
@@ -437,7 +466,7 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     with torch.no_grad():
         r2 = residual * residual
         if floor_stat == "chi2":
-            estimate = chi2_floor(r2, v, g, huber_c)
+            estimate = chi2_floor(r2, v, g, huber_c, floor)
         else:
             excess = (r2 - v) / g
             estimate = float(torch.median(excess) if floor_stat == "median" else torch.mean(excess))

@@ -30,6 +30,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
+from ev3dgs.train.config import DENSIFY_FROM, FLOOR_STATS  # noqa: E402
 from ev3dgs.train.jobs import run_parallel  # noqa: E402
 
 
@@ -58,9 +59,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cells", nargs="+", required=True,
                     help="heldout_shake cells (t<threshold>_m<relative mismatch>) or built-in scene names")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
-    ap.add_argument("--floor", choices=("mean", "median"), default="mean")
+    ap.add_argument("--floor", choices=FLOOR_STATS, default="mean")
     ap.add_argument("--huber", type=float, default=0.0, help="C in standard deviations; 0 = off (default)")
-    ap.add_argument("--densify", choices=("all", "blur"), default="all")
+    ap.add_argument("--densify", choices=DENSIFY_FROM, default="all")
     ap.add_argument("--iterations", type=int, default=1000)
     ap.add_argument("--event-term-cache", type=Path, default=ROOT / "tools/results/event_term_cache")
     ap.add_argument("--fidelity-cache", type=Path, default=ROOT / "tools/results/fidelity_cache")
