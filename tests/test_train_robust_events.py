@@ -61,3 +61,21 @@ def test_robust_event_options_train_finite_and_reproducible(scene_path, tmp_path
 def test_bad_robust_event_options_are_refused(scene_path, bad):
     with pytest.raises(ConfigError):
         cfg(scene_path, **bad)
+
+
+def test_bench_event_weighting_times_the_three_settings_before_any_split(scene_path, tmp_path):
+    """tools/bench/bench_event_weighting.py: the three settings timed, ratios against the default's median,
+    and a run long enough to reach the first split (step 500 of a 30 000-step schedule) refused."""
+    import json
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "bench"))
+    from bench_event_weighting import VARIANTS, main
+
+    out = tmp_path / "w.json"
+    assert main(["--scene", scene_path, "--rounds", "2", "--init-points", "200", "--json", str(out),
+                 "--plot", str(tmp_path / "w.png")]) == 0
+    res = json.loads(out.read_text())
+    assert set(res["ms_per_step"]) == set(VARIANTS) and res["ratio_to_default"]["default"] == 1.0
+    assert all(v > 0 for v in res["ms_per_step"].values()) and (tmp_path / "w.png").stat().st_size > 1000
+    with pytest.raises(SystemExit, match="no Gaussian may be split"):
+        main(["--scene", scene_path, "--rounds", "495", "--json", str(tmp_path / "x.json")])

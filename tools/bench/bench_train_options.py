@@ -36,21 +36,29 @@ VARIANTS = {"default": {}, "--hdr": {"hdr": True}, "SH degree 3": {"sh_interval"
 WARMUP = 5   # steps before timing: the SH degree reaches 3 at the fourth step with --sh-interval 1
 
 
-def measure(scene: str, rounds: int, init_points: int) -> dict:
+def measure(scene: str, rounds: int, init_points: int, variants: dict | None = None, check=None,
+            **settings) -> dict:
+    """Median (and mean) ms per step of each of ``variants`` (default VARIANTS; one named "default" is the
+    ratios' base), steps interleaved round by round; ``settings``: TrainConfig values every variant shares
+    (default: densification off); ``check(trainers)``: called before the first step, may refuse."""
     import torch
 
     from ev3dgs.train.config import TrainConfig
     from ev3dgs.train.trainer import Trainer
 
+    variants = VARIANTS if variants is None else variants
+    settings = {"densify": False, **settings}
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
         trainers = {name: Trainer(TrainConfig(scene=scene, init_points=init_points, threads=1, seed=0,
-                                              densify=False, **over), Path(tmp) / str(i), quiet=True)
-                    for i, (name, over) in enumerate(VARIANTS.items())}
+                                              **settings, **over), Path(tmp) / str(i), quiet=True)
+                    for i, (name, over) in enumerate(variants.items())}
+        if check is not None:
+            check(trainers)
         for tr in trainers.values():
             for _ in range(WARMUP):
                 tr.train_step()
-        times: dict[str, list[float]] = {name: [] for name in VARIANTS}
+        times: dict[str, list[float]] = {name: [] for name in variants}
         for _ in range(rounds):
             for name, tr in trainers.items():
                 t = time.perf_counter()
@@ -68,7 +76,7 @@ def measure(scene: str, rounds: int, init_points: int) -> dict:
             "ms_quartiles": {name: [float(np.percentile(t, q)) * 1e3 for q in (25, 75)] for name, t in times.items()}}
 
 
-def plot(res: dict, png: Path) -> None:
+def plot(res: dict, png: Path, title: str = "blur + event step") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -81,7 +89,7 @@ def plot(res: dict, png: Path) -> None:
     ax.bar(names, med, yerr=[np.subtract(med, q[:, 0]), q[:, 1] - med], capsize=3)
     ax.set_ylabel("ms per step (median, IQR)")
     w, h = res["size"]
-    ax.set_title(f"blur + event step, {w}x{h}, {res['gaussians']} Gaussians, 1 thread", fontsize=9)
+    ax.set_title(f"{title}, {w}x{h}, {res['gaussians']} Gaussians, 1 thread", fontsize=9)
     fig.tight_layout()
     fig.savefig(png, dpi=110)
 
