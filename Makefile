@@ -52,7 +52,7 @@ study: setup
 	$(BIN)/python tools/studies/study_render.py
 	$(BIN)/python tools/studies/study_train.py
 
-# the event term against the contrast threshold and its mismatch on one scene (all eleven steps about 6 h on 2 cores)
+# the event term against the contrast threshold and its mismatch on one scene (all twelve steps about 6.5 h on 2 cores)
 study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-count --seeds 0 \
 		--json tools/results/study_event_term_count.json
@@ -85,6 +85,9 @@ study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-sh-mapprior --mismatch 0.1 0.4 \
 		--merge tools/results/study_event_term_sh.json \
 		--json tools/results/study_event_term_sh_mapprior.json --plot tools/results/study_event_term_sh_mapprior.png
+	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-sh-robust \
+		--merge tools/results/study_event_term_sh.json --plot-variants blur+event-sh blur+event-sh-robust \
+		--json tools/results/study_event_term_robust.json --plot tools/results/study_event_term_robust.png
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
 # on 2 cores after study-event-term) and lowlight (frame noise), two seeds

@@ -118,7 +118,8 @@ class TrainConfig:
         check(isinstance(self.event_huber, (int, float)) and 0 <= self.event_huber < float("inf"),
               "--event-huber must be a number >= 0 (0: off)")
         check(self.densify_from in DENSIFY_FROM, f"--densify-from must be one of {', '.join(DENSIFY_FROM)}")
-        for flag, on in (("--event-floor median", self.event_floor != "mean"), ("--event-huber", self.event_huber)):
+        for flag, on in ((f"--event-floor {self.event_floor}", self.event_floor != "mean"),
+                         ("--event-huber", self.event_huber)):
             check(not on or self.event_norm == "noise", f"{flag} needs --event-norm noise (it shapes the noise norm)")
         check(self.frame_noise is None or 0 <= self.frame_noise <= 255,
               "--frame-noise must be auto or a sigma in 8-bit levels in [0, 255]")
