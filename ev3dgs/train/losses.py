@@ -440,8 +440,8 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     change, and never above 1 / (floor g), so finer thresholds sharpen the target without letting the term
     outgrow the blur loss (the count norm, residual / theta, grows as 1 / theta^2).
     Returns (loss, this step's floor estimate: by default the mean of (r^2 - v) / g, else as ``floor_stat``
-    says; a detached float, which update_floor bounds). ``theta_pos``/``theta_neg`` may be (H, W) per-pixel maps and ``spread`` their remaining
-    relative error (count_variance).
+    says; a detached float, which update_floor bounds). ``theta_pos``/``theta_neg`` may be (H, W) per-pixel
+    maps and ``spread`` their remaining relative error (count_variance).
 
     ``floor_stat`` "median": the estimate is the median of (r^2 - v) / g instead of the mean. The mean is set
     by the few pixel-pairs the model cannot render (a heavy tail) and caps every other pixel-pair's weight at
