@@ -62,6 +62,8 @@ def main(argv=None) -> int:
     ap.add_argument("--floor", choices=FLOOR_STATS, default="mean")
     ap.add_argument("--huber", type=float, default=0.0, help="C in standard deviations; 0 = off (default)")
     ap.add_argument("--densify", choices=DENSIFY_FROM, default="all")
+    ap.add_argument("--event-mismatch", type=float, default=None,
+                    help="the noise norm's relative threshold spread (default: each scene file's own)")
     ap.add_argument("--iterations", type=int, default=1000)
     ap.add_argument("--event-term-cache", type=Path, default=ROOT / "tools/results/event_term_cache")
     ap.add_argument("--fidelity-cache", type=Path, default=ROOT / "tools/results/fidelity_cache")
@@ -70,7 +72,10 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if not (a.huber >= 0 and math.isfinite(a.huber)):
         ap.error("--huber must be >= 0")
-    tag = f"ew_{a.floor}_h{a.huber:g}_{a.densify}"
+    if a.event_mismatch is not None and not 0 <= a.event_mismatch <= 1:
+        ap.error("--event-mismatch must be in [0, 1]")
+    tag = f"ew_{a.floor}_h{a.huber:g}_{a.densify}" + ("" if a.event_mismatch is None else f"_em{a.event_mismatch:g}")
+    mismatch = {} if a.event_mismatch is None else {"event_mismatch": a.event_mismatch}
     jobs = []
     for seed in a.seeds:
         for cell in a.cells:
@@ -82,12 +87,13 @@ def main(argv=None) -> int:
                 out = a.fidelity_cache / "runs" / path.stem / f"{tag}_s{seed}"
             if not path.exists():
                 ap.error(f"{path} is missing: make it with study_event_term.py or bench_fidelity.py")
-            jobs.append({"cell": cell, "seed": seed, "path": str(path), "overrides": overrides, "out": str(out),
+            jobs.append({"cell": cell, "seed": seed, "path": str(path), "overrides": {**overrides, **mismatch},
+                         "out": str(out),
                          "iterations": a.iterations, "floor": a.floor, "huber": a.huber, "densify": a.densify})
     runs = run_parallel(_run, jobs, a.jobs, lambda r: print(json.dumps(r), flush=True) or r)
     a.json.parent.mkdir(parents=True, exist_ok=True)
     settings = {"cells": a.cells, "seeds": a.seeds, "floor": a.floor, "huber": a.huber, "densify": a.densify,
-                "iterations": a.iterations}
+                "event_mismatch": a.event_mismatch, "iterations": a.iterations}
     a.json.write_text(json.dumps({"settings": settings, "runs": runs}, indent=2))
     print(f"-> {a.json}")
     return 0
