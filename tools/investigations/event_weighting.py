@@ -2,13 +2,16 @@
 and the densification statistics changed, one at a time or together (the trainer's options):
 
 * ``--floor median`` (--event-floor): the floor f from each step's median excess residual instead of the
-  mean (the mean is set by the few pixel-pairs the model cannot render: floor_tail.py);
+  mean (the mean is set by the few pixel-pairs the model cannot render: floor_tail.py); ``--floor chi2``:
+  the f at which the penalised chi-square averages what the noise model expects (losses.chi2_floor);
 * ``--huber C`` (--event-huber): each pixel-pair's normalised residual x = r^2 / (v + f g) penalised as x
   within C standard deviations and 2 C sqrt(x) - C^2 beyond, so that a pixel-pair the model cannot fit
   pulls as |r|, not r^2; 0 = off;
 * ``--densify blur`` (--densify-from): the densification statistics from the blur term's gradient alone
   (one more backward pass through the blur loss per step), so that the event term's weight does not decide
-  how many Gaussians are split.
+  how many Gaussians are split;
+* ``--event-mismatch S`` (the trainer's option of that name): the noise model's relative threshold spread
+  instead of the scene file's, e.g. a change-proportional term where the scene has no mismatch.
 
 Cells are heldout_shake's (study_event_term's cache, ``t0.05_m0.1``: threshold 0.05, 10 % mismatch) or
 built-in scenes (bench_fidelity's cache, 24 + 8 views at 96x72); each run is scored on its file's blur and
