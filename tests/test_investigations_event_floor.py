@@ -1,5 +1,6 @@
 """tools/investigations: floor_tail's summary of the noise norm's excess residual against hand-computed
-values, exact_thresholds' pattern against the simulator's own draw."""
+values and its spy on a resumed run with every floor option, exact_thresholds' pattern against the
+simulator's own draw."""
 from __future__ import annotations
 
 import sys
@@ -10,9 +11,11 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "investigations"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from exact_thresholds import drawn_multipliers  # noqa: E402
-from floor_tail import tail_summary  # noqa: E402
+from floor_tail import measure, tail_summary  # noqa: E402
+from test_train import cfg, scene_path  # noqa: E402,F401  (the small blob scene and its settings)
 
 
 def test_tail_summary_of_1_to_100_with_negatives():
@@ -40,3 +43,20 @@ def test_drawn_multipliers_are_the_scene_files_mismatch():
         assert abs(pol.std() - 0.15) < 4 * 0.15 / np.sqrt(2 * n)
     assert abs(np.corrcoef(m[0].ravel(), m[1].ravel())[0, 1]) < 4 / np.sqrt(n)
     assert np.array_equal(m, drawn_multipliers("ficus", 72, 96))
+
+
+@pytest.mark.parametrize("opts", [{}, dict(event_floor="chi2", event_huber=3.0, densify_from="blur")])
+def test_floor_tail_measures_a_resumed_run_with_any_floor_option(scene_path, tmp_path, opts):
+    """floor_tail.measure resumes a run for two steps with the trainer's event loss wrapped, whatever the
+    run's floor statistic and penalty (the wrapper passes them on), and summarises each step's excess; the
+    run folder itself is left as it was."""
+    from ev3dgs.train.trainer import Trainer
+
+    run = tmp_path / "run"
+    Trainer(cfg(scene_path, iterations=20, **opts), run, quiet=True).fit()
+    before = (run / "log.jsonl").read_text()
+    got = measure(run, 2)
+    assert got["steps"] == 2 and set(got) == {"mean", "median", "top1", "top5", "steps"}
+    assert np.isfinite([got[k] for k in ("mean", "median", "top1", "top5")]).all()
+    assert 0 <= got["top1"] <= got["top5"] <= 1
+    assert (run / "log.jsonl").read_text() == before

@@ -46,12 +46,12 @@ def measure(run: Path, steps: int) -> dict:
     seen = []
     real = trainer_module.noise_event_loss
 
-    def spy(log_l, counts, pairs, theta_pos, theta_neg, convention, rel, noise, floor, knee, spread=None):
-        with torch.no_grad():
+    def spy(log_l, counts, pairs, theta_pos, theta_neg, convention, rel, noise, floor, knee, spread=None, *rest):
+        with torch.no_grad():   # rest: the floor statistic and penalty, passed on as the trainer gave them
             tp, tn = losses._thetas(theta_pos, theta_neg, log_l)
             r, v, g = losses.noise_terms(log_l.detach(), counts, pairs, tp, tn, convention, rel, noise, knee, spread)
             seen.append(tail_summary((r * r - v) / g))
-        return real(log_l, counts, pairs, theta_pos, theta_neg, convention, rel, noise, floor, knee, spread)
+        return real(log_l, counts, pairs, theta_pos, theta_neg, convention, rel, noise, floor, knee, spread, *rest)
 
     trainer_module.noise_event_loss = spy
     try:
