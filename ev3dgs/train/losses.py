@@ -390,14 +390,8 @@ def chi2_floor(r2: torch.Tensor, v: torch.Tensor, g: torch.Tensor, c: float, sta
         fg = math.exp(s) * g
         d = v + fg
         x = r2 / d
-        if c > 0:
-            root = torch.sqrt(x)
-            inside = x <= c2
-            rho = torch.where(inside, x, (2 * c) * root - c2)
-            slope = torch.where(inside, x, c * root)   # x rho'(x)
-        else:
-            rho = slope = x
-        return float(torch.mean(rho)) - target, -float(torch.mean(slope * fg / d))
+        slope = torch.where(x <= c2, x, c * torch.sqrt(x)) if c > 0 else x   # x huber'(x)
+        return float(torch.mean(huber(x, c))) - target, -float(torch.mean(slope * fg / d))
 
     lo, hi = math.log(FLOOR_MIN), math.log(max(top, FLOOR_MIN))
     if h(lo)[0] <= 0:
