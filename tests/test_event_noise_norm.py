@@ -213,9 +213,9 @@ def test_huber_mean_is_the_gaussian_expectation(c):
 def test_chi2_floor_is_the_root_found_independently(seed, scale, tail, c):
     """chi2_floor against scipy's brentq on the same function, mean huber(r^2 / (v + f g), c) - huber_mean(c),
     for residuals of a model error of known size (scale) with a share of them (tail) 30 times larger (2000
-    pixel-pairs: all of them are used); brentq to 1e-12. Residuals the
-    counts' noise already explains give FLOOR_MIN. From no start, from the root's neighbourhood and from far
-    off (safeguarded Newton in log f, stopped when a step is below 1e-3: f within 0.1 %)."""
+    pixel-pairs: all of them are used); brentq to 1e-12. Residuals the counts' noise already explains give
+    FLOOR_MIN. From no start, from the root's neighbourhood and from far off (safeguarded Newton in log f,
+    stopped when a step is below 1e-3: f within 0.1 %)."""
     from scipy.optimize import brentq
 
     rng = np.random.default_rng(seed)
@@ -224,8 +224,7 @@ def test_chi2_floor_is_the_root_found_independently(seed, scale, tail, c):
     g = rng.uniform(0.5, 4.0, n)
     sd = np.sqrt(v + scale * g) * np.where(rng.random(n) < tail, 30.0, 1.0)
     r2 = (rng.normal(size=n) * sd) ** 2
-    T = (torch.from_numpy(x) for x in (r2, v, g))
-    T = tuple(T)
+    T = tuple(torch.from_numpy(x) for x in (r2, v, g))
     got = [chi2_floor(*T, c, start) for start in (None, scale, 1e-4 * scale, 1e4)]
 
     def h(logf):
