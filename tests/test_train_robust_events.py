@@ -1,4 +1,4 @@
-"""--event-floor median, --event-huber and --densify-from blur in the trainer: densification statistics from
+"""--event-floor median|chi2, --event-huber and --densify-from blur in the trainer: densification statistics from
 the blur term alone are those of a run without the event loss (a second computation of the same gradient);
 the three together train, stay finite and are bitwise reproducible; bad values are refused."""
 from __future__ import annotations
