@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -53,9 +52,9 @@ sys.path.insert(0, str(ROOT / "tools"))
 sys.path.insert(0, str(ROOT / "tools" / "bench"))
 sys.path.insert(0, str(ROOT / "tools" / "studies"))
 
+from derived_scenes import SUBFRAMES, derived_scenes, render_cache  # noqa: E402,F401
 from pareto import save_json  # noqa: E402
 
-SUBFRAMES = 17
 # variant -> (training scene: "cell" | "free" (the events-free cell the sensor-free runs share) | "info" |
 # "ideal", TrainConfig overrides, step multiplier, first seed only)
 VARIANTS = {
@@ -107,72 +106,6 @@ STEPS = [
 ]
 
 
-def _render_cache(scene_file: Path) -> Path:
-    """The render cache study_event_term's cells link to (view_NNNN.npz: 17 linear sub-frames and poses)."""
-    found = sorted(p for p in scene_file.parent.glob(".scene.cache-*") if p.is_dir())
-    if not found:
-        raise SystemExit(f"no render cache beside {scene_file}: run study_event_term.py's cells first")
-    return found[0]
-
-
-def derived_scenes(spec_path: str, cell: Path, out_dir: Path) -> dict[str, Path]:
-    """Write (once) the scene files made from ``cell`` and its render cache: "info" (every sharp sub-frame a
-    view), "ideal" (blurry frames as the trainer's blur model makes them) and, for a scene with frame noise,
-    "clean" (the ISP's blurry frames without the noise) and "noisy" (sharp frames with it)."""
-    import torch
-
-    from ev3dgs import schema
-    from ev3dgs.sim.blur import blur_frames
-    from ev3dgs.sim.dataset import _to_srgb
-    from ev3dgs.sim.scenes import load_scene
-    from ev3dgs.train.losses import linear_to_srgb_torch, srgb_to_linear_torch
-
-    spec = load_scene(spec_path)
-    isp, noise = spec.sensor.isp, spec.sensor.sensor_noise
-    kinds = ("info", "ideal") + (("clean", "noisy") if noise is not None else ())
-    names = {"info": "info_oracle.h5", "ideal": "blur_ideal.h5", "clean": "blur_clean.h5",
-             "noisy": "sharp_noisy.h5"}
-    paths = {k: out_dir / names[k] for k in kinds}
-    if all(p.exists() for p in paths.values()):
-        return paths
-    sc = schema.read(cell)
-    tr = sc.train
-    cache = _render_cache(cell)
-    subs, sub_poses, ideal, clean, noisy = [], [], [], [], []
-    for v in range(len(tr)):
-        r = np.load(cache / f"view_{v:04d}.npz")
-        frames, poses = r["frames"][:SUBFRAMES], r["poses"][:SUBFRAMES]
-        mid = SUBFRAMES // 2
-        if not np.allclose(poses[mid], tr.sharp_poses[v], atol=1e-9):
-            raise SystemExit(f"{cache}: view {v}'s cached poses are not the scene's")
-        srgb = np.stack([_to_srgb(f, spec) for f in frames])          # (17, H, W, 3) uint8, as /train/sharp
-        if not np.array_equal(srgb[mid], np.asarray(tr.sharp[v])):
-            raise SystemExit(f"{cache}: view {v}'s mid sub-frame is not the scene's sharp frame")
-        # make_dataset's blurry frame (dataset seed 0: noise seed = view index): the cache is this scene's
-        if not np.array_equal(blur_frames(frames, isp, noise, seed=v), np.asarray(tr.images[v])):
-            raise SystemExit(f"{cache}: view {v}'s blurry frame does not come from these sub-frames")
-        subs.append(srgb)
-        sub_poses.append(poses)
-        lin = srgb_to_linear_torch(torch.from_numpy(srgb).double() / 255.0).mean(dim=0)
-        ideal.append(np.clip(np.rint(linear_to_srgb_torch(lin).numpy() * 255.0), 0, 255).astype(np.uint8))
-        if noise is not None:
-            clean.append(blur_frames(frames, isp, None))
-            # the mid sub-frame through the same raw-domain noise (another stream than the blurry frame's)
-            noisy.append(blur_frames(frames[mid:mid + 1], isp, noise, seed=1_000_003 + v))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rep = lambda a: np.repeat(np.asarray(a), SUBFRAMES, axis=0)  # noqa: E731
-    made = {"info": replace(tr, images=np.concatenate(subs), exposure=rep(tr.exposure), poses=rep(tr.poses),
-                            pose_t=rep(tr.pose_t), sharp=np.concatenate(subs),
-                            sharp_poses=np.concatenate(sub_poses)),
-            "ideal": replace(tr, images=np.stack(ideal))}
-    if noise is not None:
-        made |= {"clean": replace(tr, images=np.stack(clean)), "noisy": replace(tr, sharp=np.stack(noisy))}
-    for kind, train in made.items():
-        if not paths[kind].exists():
-            schema.write(replace(sc, train=train), paths[kind])
-    return paths
-
-
 def blur_model_residual(cell: Path, ideal: Path) -> dict:
     """Where the scene's blurry frames differ from the trainer's blur model of their sharp sub-frames: the
     PSNR between the two, and the share of the squared difference at pixels that some sub-frame sees above
@@ -181,7 +114,7 @@ def blur_model_residual(cell: Path, ideal: Path) -> dict:
 
     real = np.asarray(schema.read(cell).train.images).astype(np.float64)
     model = np.asarray(schema.read(ideal).train.images).astype(np.float64)
-    cache = _render_cache(cell)
+    cache = render_cache(cell)
     hdr = np.stack([np.load(cache / f"view_{v:04d}.npz")["frames"][:SUBFRAMES].max(axis=(0, 3)) > 1.0
                     for v in range(len(real))])
     d2 = ((real - model) ** 2).sum(axis=-1)
