@@ -88,6 +88,10 @@ study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-sh-robust \
 		--merge tools/results/study_event_term_sh.json --plot-variants blur+event-sh blur+event-sh-robust \
 		--json tools/results/study_event_term_robust.json --plot tools/results/study_event_term_robust.png
+	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-hdr-sh-map@17-robust --thresholds 0.05 \
+		--mismatch 0.1 --seeds 0 1 2 --merge tools/results/study_event_term_subposes.json \
+		tools/results/study_event_term_subposes_seed2.json tools/results/study_event_term_robust.json \
+		--json tools/results/study_event_term_all_options.json
 
 # where the gap to the sharp oracle comes from: heldout_shake (shares study-event-term's renders and runs; ~2 h
 # on 2 cores after study-event-term) and lowlight (frame noise), two seeds

@@ -76,7 +76,10 @@ VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="
             # the floor at which the penalised chi-square averages as expected, a Huber penalty beyond 3
             # standard deviations and densification from the blur term (--event-floor chi2 --event-huber 3
             # --densify-from blur)
-            "blur+event-sh-robust": dict(event_norm="noise", sh_interval=33, **ROBUST)}
+            "blur+event-sh-robust": dict(event_norm="noise", sh_interval=33, **ROBUST),
+            # the same with --hdr, per-pixel thresholds and 17 sub-poses: every option at once
+            "blur+event-hdr-sh-map@17-robust": dict(event_norm="noise", hdr=True, sh_interval=33, subposes=17,
+                                                    **MAP, **ROBUST)}
 # variants that never read the events: one run per seed, on the events-free cell
 SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh", "blur-only-sh")
 
