@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -116,7 +117,22 @@ def test_a_render_that_rounds_a_few_values_the_other_way_is_the_same_render(tmp_
     sc = schema.read(source)
     images = np.asarray(sc.train.images).copy()
     images[0, 0, 0, 0] ^= 1                                                           # one level, one value
-    from dataclasses import replace
     schema.write(replace(sc, train=replace(sc.train, images=images)), moved)
     cache = ds.ensure_render_cache(scene, _render_as(moved)[0])
     assert cache.parent == scene.parent
+
+
+def test_an_interrupted_render_resumes_from_its_cache_and_its_file_is_made_again(tmp_path):
+    """A render stopped after writing its file (before the check): the next call makes the file again in the
+    same temporary folder, where make_dataset would find the views it had already rendered."""
+    scene, source = _without_cache(tmp_path)
+    tmp = scene.parent / f".{scene.stem}.rerender"
+    tmp.mkdir()
+    (tmp / scene.name).write_bytes(b"an interrupted attempt's file")
+    seen = []
+
+    def make(out: Path):
+        seen.append(out.exists())       # make_dataset refuses to replace a file: it must be gone
+        _render_as(source)[0](out)
+    assert ds.ensure_render_cache(scene, make).parent == scene.parent
+    assert seen == [False] and not tmp.exists()

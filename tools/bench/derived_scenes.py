@@ -123,8 +123,9 @@ def ensure_render_cache(scene_file: Path, make, quiet: bool = True) -> Path:
     if found is not None:
         return found
     tmp = scene_file.parent / f".{scene_file.stem}.rerender"
-    shutil.rmtree(tmp, ignore_errors=True)   # an interrupted earlier attempt of this same function
-    tmp.mkdir()
+    tmp.mkdir(exist_ok=True)
+    # an interrupted earlier attempt: its render cache resumes the render (make_dataset), its file goes
+    (tmp / scene_file.name).unlink(missing_ok=True)
     if not quiet:
         print(f"  {scene_file.name}: rendering again to keep its render cache", flush=True)
     make(tmp / scene_file.name)
