@@ -301,3 +301,19 @@ def test_band_split_puts_a_smooth_error_in_the_low_part_and_a_blurred_render_bel
     assert out["high_psnr"] > 200        # rounding only
     blurred = np.stack([gaussian_filter(im, (2, 2, 0)) for im in truth])
     assert sa.band_split(blurred, truth)["fine_energy_ratio"] < 0.2
+
+
+def test_bench_event_norm_fills_only_variants_without_their_own_in_run_folders_of_its_own(tmp_path):
+    """bench_fidelity --event-norm count (the docs' event-weight table): every variant that does not set the
+    norm trains with it; the runs go to folders of their own, so the default norm's cached runs stay."""
+    from bench_fidelity import make_jobs
+
+    variants = {"blur+event@4": {"event_weight": 4 / 625}, "own": {"event_norm": "noise"}}
+    paths = {"lego": tmp_path / "lego_96x72.h5"}
+    plain = make_jobs(["lego"], paths, variants, 1, tmp_path, None, iterations=10)
+    count = make_jobs(["lego"], paths, variants, 1, tmp_path, 1000, None, "count", iterations=10)
+    assert [j["overrides"].get("event_norm") for j in plain] == [None, "noise"]
+    assert [j["overrides"] for j in count] == [{"sh_interval": 1000, "event_norm": "count", "event_weight": 4 / 625},
+                                              {"sh_interval": 1000, "event_norm": "noise"}]
+    assert count[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_w4_sh1000_count_s0")
+    assert not {j["out"] for j in plain} & {j["out"] for j in count}

@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from derived_scenes import SUBFRAMES  # noqa: E402
 from ev3dgs.sim.dataset import make_dataset  # noqa: E402
 from ev3dgs.sim.scenes import builtin_scenes, load_scene, resolve_render  # noqa: E402
-from ev3dgs.train.config import TrainConfig  # noqa: E402
+from ev3dgs.train.config import EVENT_WEIGHTS, TrainConfig  # noqa: E402
 from ev3dgs.errors import InputError  # noqa: E402
 from ev3dgs.train.evaluate import evaluate  # noqa: E402
 from ev3dgs.train.jobs import default_jobs, run_parallel  # noqa: E402
@@ -124,11 +124,12 @@ def with_sh_interval(overrides: dict, sh_interval: int | None) -> dict:
 
 
 def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache: Path, sh_interval: int | None,
-              derived: dict | None = None, **common) -> list[dict]:
+              derived: dict | None = None, event_norm: str | None = None, **common) -> list[dict]:
     """One job per (seed, scene, variant), seed-major (an interrupted run leaves whole seeds). ``sh_interval``:
     the SH schedule of every variant that does not set its own, in run folders of its own (``_shN``), so that
     the default's cached runs stay beside them. ``derived``: {scene: {kind: file}} for INFO_VARIANTS, which
-    train on that file and are scored on the scene's own."""
+    train on that file and are scored on the scene's own. ``event_norm``: likewise the event norm of every
+    variant that does not set its own, in run folders of its own (``_NORM``)."""
     jobs = []
     for seed in range(seeds):
         for name in scenes:
@@ -136,9 +137,13 @@ def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache:
                 tag = variant.replace("+", "_").replace("@", "_w")
                 if sh_interval is not None:
                     tag += f"_sh{sh_interval}"
+                if event_norm is not None:
+                    tag += f"_{event_norm}"
                 train = paths[name] if variant not in INFO_VARIANTS else derived[name][INFO_VARIANTS[variant]]
                 jobs.append({"scene": name, "scene_path": str(train), "variant": variant, "seed": seed,
-                             "overrides": with_sh_interval(overrides, sh_interval), **common,
+                             "overrides": with_sh_interval(
+                                 overrides if event_norm is None else {"event_norm": event_norm, **overrides},
+                                 sh_interval), **common,
                              "eval_scene": None if variant not in INFO_VARIANTS else str(paths[name]),
                              "out": str(cache / "runs" / Path(paths[name]).stem / f"{tag}_s{seed}")})
     return jobs
@@ -381,6 +386,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sh-interval", type=int, metavar="N",
                     help="train every variant that does not set its own with --sh-interval N (default: the "
                          "trainer's, auto; 1000 keeps the colours view-independent through 1000 steps)")
+    ap.add_argument("--event-norm", choices=tuple(EVENT_WEIGHTS),
+                    help="train every variant that does not set its own with this event norm (default: the "
+                         "trainer's, noise; count is the norm of the event-weight table in the docs)")
     ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
     if a.lpips_weights:
@@ -426,7 +434,7 @@ def main(argv=None) -> int:
     info = any(v in INFO_VARIANTS for v in variants)
     paths = {name: build_scene(name, render, a.cache, a.quiet, keep_cache=info) for name in scenes}
     derived = {name: derive_scenes(name, paths[name], render, a.cache, a.quiet) for name in scenes} if info else {}
-    jobs = make_jobs(scenes, paths, variants, seeds, a.cache, a.sh_interval, derived,
+    jobs = make_jobs(scenes, paths, variants, seeds, a.cache, a.sh_interval, derived, a.event_norm,
                      iterations=iterations, init_points=a.init_points,
                      lpips_weights=a.lpips_weights and str(a.lpips_weights))
     runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]
@@ -440,7 +448,7 @@ def main(argv=None) -> int:
     scenes = list(dict.fromkeys([*scenes, *(r["scene"] for r in runs)]))
     result = {"settings": {"quick": a.quick, "scenes": scenes, "seeds": seeds, "iterations": iterations,
                            "init_points": a.init_points, "render": render, "dataset_seed": 0, "jobs": a.jobs,
-                           "sh_interval": a.sh_interval,
+                           "sh_interval": a.sh_interval, "event_norm": a.event_norm,
                            "variants": list(variants), "variant_overrides": variants, "code": code_hash(),
                            "merged": [str(p) for p in a.merge]},
               "summary": summary, "targets": targets(summary["average"]),
