@@ -52,7 +52,7 @@ study: setup
 	$(BIN)/python tools/studies/study_render.py
 	$(BIN)/python tools/studies/study_train.py
 
-# the event term against the contrast threshold and its mismatch on one scene (all twelve steps about 6.5 h on 2 cores)
+# the event term against the contrast threshold and its mismatch on one scene (all thirteen steps about 7 h on 2 cores)
 study-event-term: setup
 	$(BIN)/python tools/studies/study_event_term.py --variants blur+event-count --seeds 0 \
 		--json tools/results/study_event_term_count.json

@@ -304,8 +304,9 @@ def test_band_split_puts_a_smooth_error_in_the_low_part_and_a_blurred_render_bel
 
 
 def test_bench_event_norm_fills_only_variants_without_their_own_in_run_folders_of_its_own(tmp_path):
-    """bench_fidelity --event-norm count (the docs' event-weight table): every variant that does not set the
-    norm trains with it; the runs go to folders of their own, so the default norm's cached runs stay."""
+    """bench_fidelity --event-norm count (the docs' event-weight table) and --frame-noise 0 (the lowlight rows
+    of the option tables): every variant that does not set its own trains with it; the runs go to folders of
+    their own, so the default's cached runs stay."""
     from bench_fidelity import make_jobs
 
     variants = {"blur+event@4": {"event_weight": 4 / 625}, "own": {"event_norm": "noise"}}
@@ -317,3 +318,9 @@ def test_bench_event_norm_fills_only_variants_without_their_own_in_run_folders_o
                                               {"sh_interval": 1000, "event_norm": "noise"}]
     assert count[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_w4_sh1000_count_s0")
     assert not {j["out"] for j in plain} & {j["out"] for j in count}
+    quiet = make_jobs(["lego"], paths, variants, 1, tmp_path, None, None, None, 0.0, iterations=10)
+    assert [j["overrides"] for j in quiet] == [{"frame_noise": 0.0, "event_weight": 4 / 625},
+                                              {"frame_noise": 0.0, "event_norm": "noise"}]
+    assert quiet[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_w4_fn0_s0")
+    fixed = make_jobs(["lego"], paths, {"own": {"frame_noise": 5.0}}, 1, tmp_path, None, None, None, 0.0)
+    assert fixed[0]["overrides"] == {"frame_noise": 5.0}

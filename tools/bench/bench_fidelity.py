@@ -124,12 +124,14 @@ def with_sh_interval(overrides: dict, sh_interval: int | None) -> dict:
 
 
 def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache: Path, sh_interval: int | None,
-              derived: dict | None = None, event_norm: str | None = None, **common) -> list[dict]:
+              derived: dict | None = None, event_norm: str | None = None, frame_noise: float | None = None,
+              **common) -> list[dict]:
     """One job per (seed, scene, variant), seed-major (an interrupted run leaves whole seeds). ``sh_interval``:
     the SH schedule of every variant that does not set its own, in run folders of its own (``_shN``), so that
     the default's cached runs stay beside them. ``derived``: {scene: {kind: file}} for INFO_VARIANTS, which
-    train on that file and are scored on the scene's own. ``event_norm``: likewise the event norm of every
-    variant that does not set its own, in run folders of its own (``_NORM``)."""
+    train on that file and are scored on the scene's own. ``event_norm``, ``frame_noise``: likewise the event
+    norm and the frames' noise sigma of every variant that does not set its own, in run folders of their own
+    (``_NORM``, ``_fnSIGMA``)."""
     jobs = []
     for seed in range(seeds):
         for name in scenes:
@@ -139,11 +141,13 @@ def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache:
                     tag += f"_sh{sh_interval}"
                 if event_norm is not None:
                     tag += f"_{event_norm}"
+                if frame_noise is not None:
+                    tag += f"_fn{frame_noise:g}"
+                fill = {k: v for k, v in (("event_norm", event_norm), ("frame_noise", frame_noise))
+                        if v is not None}
                 train = paths[name] if variant not in INFO_VARIANTS else derived[name][INFO_VARIANTS[variant]]
                 jobs.append({"scene": name, "scene_path": str(train), "variant": variant, "seed": seed,
-                             "overrides": with_sh_interval(
-                                 overrides if event_norm is None else {"event_norm": event_norm, **overrides},
-                                 sh_interval), **common,
+                             "overrides": with_sh_interval({**fill, **overrides}, sh_interval), **common,
                              "eval_scene": None if variant not in INFO_VARIANTS else str(paths[name]),
                              "out": str(cache / "runs" / Path(paths[name]).stem / f"{tag}_s{seed}")})
     return jobs
@@ -389,6 +393,10 @@ def main(argv=None) -> int:
     ap.add_argument("--event-norm", choices=tuple(EVENT_WEIGHTS),
                     help="train every variant that does not set its own with this event norm (default: the "
                          "trainer's, noise; count is the norm of the event-weight table in the docs)")
+    ap.add_argument("--frame-noise", type=float, metavar="SIGMA",
+                    help="train every variant that does not set its own with --frame-noise SIGMA (8-bit levels; "
+                         "default: the trainer's, auto; 0 is how the lowlight rows of the option tables in the "
+                         "docs were made)")
     ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
     if a.lpips_weights:
@@ -415,6 +423,8 @@ def main(argv=None) -> int:
         ap.error("--jobs must be >= 1")
     if a.sh_interval is not None and a.sh_interval < 1:
         ap.error("--sh-interval must be >= 1")
+    if a.frame_noise is not None and not 0 <= a.frame_noise <= 255:
+        ap.error("--frame-noise must be in [0, 255]")
     preset["render"] = render
     if a.event_weights and any(not (w >= 0) for w in a.event_weights):
         ap.error("--event-weights must be >= 0")
@@ -435,6 +445,7 @@ def main(argv=None) -> int:
     paths = {name: build_scene(name, render, a.cache, a.quiet, keep_cache=info) for name in scenes}
     derived = {name: derive_scenes(name, paths[name], render, a.cache, a.quiet) for name in scenes} if info else {}
     jobs = make_jobs(scenes, paths, variants, seeds, a.cache, a.sh_interval, derived, a.event_norm,
+                     a.frame_noise,
                      iterations=iterations, init_points=a.init_points,
                      lpips_weights=a.lpips_weights and str(a.lpips_weights))
     runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]
@@ -449,6 +460,7 @@ def main(argv=None) -> int:
     result = {"settings": {"quick": a.quick, "scenes": scenes, "seeds": seeds, "iterations": iterations,
                            "init_points": a.init_points, "render": render, "dataset_seed": 0, "jobs": a.jobs,
                            "sh_interval": a.sh_interval, "event_norm": a.event_norm,
+                           "frame_noise": a.frame_noise,
                            "variants": list(variants), "variant_overrides": variants, "code": code_hash(),
                            "merged": [str(p) for p in a.merge]},
               "summary": summary, "targets": targets(summary["average"]),
