@@ -69,6 +69,20 @@ def test_a_run_past_the_deadline_is_scored_where_it_stopped(tmp_path):
     assert r["cut_by_deadline"] and r["steps_done"] == 1 and r["steps"] == 4 and r["test_psnr"] > 5
 
 
+def test_sh_interval_reaches_the_trainer_and_a_bad_one_is_refused(tmp_path):
+    """--sh-interval N (the H100 table's 1000) is the runs' --sh-interval; unset, the trainer's default."""
+    from ev3dgs.train.config import TrainConfig
+
+    scene = gpu_check.synthetic_scene(tmp_path / "b.h5", 24, 18, views=3)
+    gpu_check.time_training(str(scene), "blur-only", 2, "cpu", "cpu", 100, tmp_path / "a", sh_interval=7)
+    gpu_check.time_training(str(scene), "blur-only", 2, "cpu", "cpu", 100, tmp_path / "d")
+    (a,), (d,) = (list((tmp_path / k).glob("*/config.json")) for k in ("a", "d"))
+    assert TrainConfig.load(a).sh_interval == 7
+    assert TrainConfig.load(d).sh_interval == TrainConfig(scene=str(scene), iterations=2).sh_interval
+    with pytest.raises(SystemExit):
+        gpu_check.main(["--dry-run", "--sh-interval", "0"])
+
+
 def test_past_the_deadline_every_run_is_skipped_and_a_failed_run_is_recorded(tmp_path, monkeypatch):
     out = tmp_path / "g.json"
     rc = gpu_check.main(["--dry-run", "--skip-tests", "--sizes", "small", "--deadline-minutes", "0", "--json",

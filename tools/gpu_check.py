@@ -95,10 +95,10 @@ def synthetic_scene(path: Path, width: int, height: int, views: int = 6, subfram
 
 
 def time_training(scene: str, variant: str, steps: int, device: str, backend: str, init_points: int,
-                  workdir: Path, deadline: float | None = None) -> dict:
+                  workdir: Path, deadline: float | None = None, sh_interval: int | None = None) -> dict:
     """Train one variant for `steps` steps (cut at `deadline`, a time.perf_counter() value); wall time of the
     fit (ms/step over the steps after the first, whose time includes kernel compilation / loading), then
-    PSNR/SSIM on the sharp test views."""
+    PSNR/SSIM on the sharp test views. ``sh_interval``: --sh-interval (None: the trainer's default, auto)."""
     import torch
 
     from ev3dgs.train.config import TrainConfig
@@ -106,7 +106,8 @@ def time_training(scene: str, variant: str, steps: int, device: str, backend: st
     from ev3dgs.train.trainer import Trainer
 
     cfg = TrainConfig(scene=scene, iterations=steps, init_points=init_points, seed=0, device=device, backend=backend,
-                      checkpoint_every=max(steps, 1), **VARIANTS[variant])
+                      checkpoint_every=max(steps, 1), **VARIANTS[variant],
+                      **({} if sh_interval is None else {"sh_interval": sh_interval}))
     run = workdir / f"{Path(scene).stem}_{variant}_{steps}_{backend}"
     marks = {}
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
@@ -255,6 +256,9 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
     ap.add_argument("--init-points", type=int, default=20000)
+    ap.add_argument("--sh-interval", type=int, metavar="N",
+                    help="raise the SH degree every N steps (default: the trainer's, auto; the H100 table in "
+                         "docs/gpu.md used 1000)")
     ap.add_argument("--cpu-baseline-steps", type=int, default=0,
                     help="first time the cpu backend for this many steps per scene, with the first variant given (the "
                          "speed-up as a ratio measured on the same machine)")
@@ -272,8 +276,10 @@ def main(argv=None) -> int:
                          "runs nothing")
     args = ap.parse_args(argv)
     if (args.deadline_minutes is not None and args.deadline_minutes < 0) or args.cpu_baseline_steps < 0 \
-            or any(n < 1 for n in args.steps or [1]) or args.init_points < 1:
-        ap.error("--steps and --init-points must be >= 1, --deadline-minutes and --cpu-baseline-steps >= 0")
+            or any(n < 1 for n in args.steps or [1]) or args.init_points < 1 \
+            or (args.sh_interval is not None and args.sh_interval < 1):
+        ap.error("--steps, --init-points and --sh-interval must be >= 1, --deadline-minutes and "
+                 "--cpu-baseline-steps >= 0")
     if args.merge:
         if not args.json:
             ap.error("--merge needs --json")
@@ -308,7 +314,7 @@ def main(argv=None) -> int:
     out = Path(args.json or REPO / "tools" / "results" / f"gpu_{gpu_slug(env.get('gpu', 'dry_run'))}.json")
     result = {"dry_run": args.dry_run, "environment": env, "gpu": env.get("gpu", "none (dry run)"),
               "device": device, "backend": backend, "steps": steps, "variants": args.variants,
-              "deadline_minutes": args.deadline_minutes, "runs": [], "skipped": []}
+              "deadline_minutes": args.deadline_minutes, "sh_interval": args.sh_interval, "runs": [], "skipped": []}
     if not args.dry_run:
         result["kernels"] = build_kernels()
         print("gsplat kernels:", result["kernels"], flush=True)
@@ -342,7 +348,7 @@ def main(argv=None) -> int:
                 continue
             cam = schema.read(scene).camera
             try:
-                r = time_training(scene, variant, n, dev, be, init_points, work / "runs", deadline)
+                r = time_training(scene, variant, n, dev, be, init_points, work / "runs", deadline, args.sh_interval)
             except Exception as e:  # noqa: BLE001 - recorded, and the other runs go on
                 failures += 1
                 r = {"variant": variant, "backend": be, "steps": n,
