@@ -123,6 +123,9 @@ def with_sh_interval(overrides: dict, sh_interval: int | None) -> dict:
     return overrides if sh_interval is None else {"sh_interval": sh_interval, **overrides}
 
 
+RUN_SUFFIX = {"sh_interval": "_sh{}", "event_norm": "_{}", "frame_noise": "_fn{:g}"}   # make_jobs' run folders
+
+
 def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache: Path, sh_interval: int | None,
               derived: dict | None = None, event_norm: str | None = None, frame_noise: float | None = None,
               **common) -> list[dict]:
@@ -132,23 +135,20 @@ def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache:
     train on that file and are scored on the scene's own. ``event_norm``, ``frame_noise``: likewise the event
     norm and the frames' noise sigma of every variant that does not set its own, in run folders of their own
     (``_NORM``, ``_fnSIGMA``)."""
+    # the settings given, for every variant that does not set its own (as with_sh_interval), and the suffix
+    # their run folders get
+    fill = {k: v for k, v in (("sh_interval", sh_interval), ("event_norm", event_norm),
+                              ("frame_noise", frame_noise)) if v is not None}
+    suffix = "".join(RUN_SUFFIX[k].format(v) for k, v in fill.items())
     jobs = []
     for seed in range(seeds):
         for name in scenes:
             for variant, overrides in variants.items():
-                tag = variant.replace("+", "_").replace("@", "_w")
-                if sh_interval is not None:
-                    tag += f"_sh{sh_interval}"
-                if event_norm is not None:
-                    tag += f"_{event_norm}"
-                if frame_noise is not None:
-                    tag += f"_fn{frame_noise:g}"
-                fill = {k: v for k, v in (("event_norm", event_norm), ("frame_noise", frame_noise))
-                        if v is not None}
-                train = paths[name] if variant not in INFO_VARIANTS else derived[name][INFO_VARIANTS[variant]]
-                jobs.append({"scene": name, "scene_path": str(train), "variant": variant, "seed": seed,
-                             "overrides": with_sh_interval({**fill, **overrides}, sh_interval), **common,
-                             "eval_scene": None if variant not in INFO_VARIANTS else str(paths[name]),
+                tag = variant.replace("+", "_").replace("@", "_w") + suffix
+                kind = INFO_VARIANTS.get(variant)
+                jobs.append({"scene": name, "scene_path": str(paths[name] if kind is None else derived[name][kind]),
+                             "variant": variant, "seed": seed, "overrides": {**fill, **overrides}, **common,
+                             "eval_scene": None if kind is None else str(paths[name]),
                              "out": str(cache / "runs" / Path(paths[name]).stem / f"{tag}_s{seed}")})
     return jobs
 
