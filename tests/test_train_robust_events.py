@@ -25,14 +25,16 @@ def _first_step_stats(scene, out, **kw) -> torch.Tensor:
 
 def test_blur_densification_sees_only_the_blur_gradient(scene_path, tmp_path):
     """After one step from the same start (same seed: same Gaussians, same view), the accumulated screen-space
-    gradient norms with --densify-from blur equal a blur-only run's, whose backward holds nothing else; with
-    the default (all) the event term adds to them. Float32 sums of the same terms in the same order: equal
-    to a few ulps at most."""
+    gradient norms with --densify-from blur (the noise norm's default) equal a blur-only run's, whose backward
+    holds nothing else; with "all" the event term adds to them. Float32 sums of the same terms in the same
+    order: equal to a few ulps at most."""
     blur_only = _first_step_stats(scene_path, tmp_path / "b", event_loss=False)
     from_blur = _first_step_stats(scene_path, tmp_path / "e", densify_from="blur")
-    from_all = _first_step_stats(scene_path, tmp_path / "a")
+    default = _first_step_stats(scene_path, tmp_path / "d")
+    from_all = _first_step_stats(scene_path, tmp_path / "a", densify_from="all")
     assert float(blur_only.abs().sum()) > 0
     torch.testing.assert_close(from_blur, blur_only, rtol=1e-6, atol=0)
+    assert torch.equal(default, from_blur)
     assert not torch.allclose(from_all, blur_only, rtol=1e-3, atol=0)
 
 
@@ -47,7 +49,8 @@ def test_robust_event_options_train_finite_and_reproducible(scene_path, tmp_path
     for k, p in runs[0].items():
         assert torch.isfinite(p).all(), k
         assert torch.equal(p, runs[1][k]), k
-    plain = Trainer(cfg(scene_path, iterations=40), tmp_path / "plain", quiet=True)
+    plain = Trainer(cfg(scene_path, iterations=40, event_floor="mean", event_huber=0.0, densify_from="all"),
+                    tmp_path / "plain", quiet=True)
     plain.fit()
     assert any(p.shape != runs[0][k].shape or not torch.equal(p.detach(), runs[0][k])
                for k, p in plain.model.params.items())
@@ -61,6 +64,33 @@ def test_robust_event_options_train_finite_and_reproducible(scene_path, tmp_path
 def test_bad_robust_event_options_are_refused(scene_path, bad):
     with pytest.raises(ConfigError):
         cfg(scene_path, **bad)
+
+
+def test_the_defaults_follow_the_norm_and_a_config_saved_without_them_keeps_its_own(scene_path, tmp_path):
+    """Unset, the floor, penalty and densification source are the noise norm's chi2 / 3 / blur and the count
+    norm's mean / 0 / all; a config.json written before the three keys existed loads with the values its run
+    used (config.LEGACY_VALUES), not today's."""
+    import json
+    from dataclasses import asdict
+
+    from ev3dgs.train.config import TrainConfig
+
+    noise, count = cfg(scene_path), cfg(scene_path, event_norm="count")
+    assert (noise.floor_stat, noise.huber_c, noise.densify_source) == ("chi2", 3.0, "blur")
+    assert (count.floor_stat, count.huber_c, count.densify_source) == ("mean", 0.0, "all")
+    saved = {k: v for k, v in asdict(noise).items() if k not in ("event_floor", "event_huber", "densify_from")}
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    old = TrainConfig.load(tmp_path / "config.json")
+    assert (old.floor_stat, old.huber_c, old.densify_source) == ("mean", 0.0, "all")
+
+
+def test_the_default_noise_norm_run_is_the_explicit_one_bit_for_bit(scene_path, tmp_path):
+    params = []
+    for name, kw in (("d", {}), ("e", dict(event_floor="chi2", event_huber=3.0, densify_from="blur"))):
+        tr = Trainer(cfg(scene_path, iterations=30, **kw), tmp_path / name, quiet=True)
+        tr.fit()
+        params.append({k: p.detach().clone() for k, p in tr.model.params.items()})
+    assert all(torch.equal(p, params[1][k]) for k, p in params[0].items())
 
 
 def test_bench_event_weighting_times_the_three_settings_before_any_split(scene_path, tmp_path):

@@ -292,19 +292,20 @@ def build_parser():
     t.add_argument("--event-pairs", type=int, default=0,
                    help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs; a view "
                         "with fewer pairs (--subpose-px) uses all of them (default %(default)s)")
-    t.add_argument("--event-floor", choices=FLOOR_STATS, default="mean",
+    t.add_argument("--event-floor", choices=FLOOR_STATS, default=None,
                    help="--event-norm noise: the model's own error, which caps every pixel-pair's weight: the "
                         "mean or the median of the pixel-pairs' squared residual beyond the counts' noise, or "
                         "chi2, the error at which their (--event-huber penalised) chi-square averages what the "
                         "noise model expects; the mean is set by the few pixels the model cannot render "
-                        "(default %(default)s)")
-    t.add_argument("--event-huber", type=finite_float, default=0.0, metavar="C",
+                        "(default chi2; the count norm has no floor)")
+    t.add_argument("--event-huber", type=finite_float, default=None, metavar="C",
                    help="--event-norm noise: event residuals beyond C standard deviations pull linearly, not "
-                        "quadratically (a Huber penalty); 0 = off (default %(default)s)")
-    t.add_argument("--densify-from", choices=DENSIFY_FROM, default="all",
+                        "quadratically (a Huber penalty); 0 = off (default 3; the count norm has none)")
+    t.add_argument("--densify-from", choices=DENSIFY_FROM, default=None,
                    help="which loss's gradient decides where Gaussians are split and cloned: all of it, or the "
                         "blur term alone, so the event term's weight does not (one more backward pass through "
-                        "the blur term per densifying step) (default %(default)s)")
+                        "the blur term per densifying step) (default blur under --event-norm noise, all under "
+                        "count)")
     t.add_argument("--frame-noise", type=_frame_noise, default="auto", metavar="auto|SIGMA",
                    help="the blurry frames' noise, sigma in 8-bit levels: as the blur loss's error comes down to "
                         "that noise, which no model should fit, the event loss weighs up to 16 times more; 0 "

@@ -12,7 +12,8 @@ from ..errors import ConfigError
 # saved, how many threads the rasterizer kernels use: results are bitwise the same for any thread count).
 RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
 # keys added after runs were saved without them, with the value those runs used (not today's default)
-LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count", "frame_noise": 0.0, "map_weights": "posterior"}
+LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count", "frame_noise": 0.0, "map_weights": "posterior",
+                 "event_floor": "mean", "event_huber": 0.0, "densify_from": "all"}
 # keys of config.json that record facts about the run, not settings (TrainConfig.load skips them)
 RECORD_KEYS = ("scene_file",)
 
@@ -29,6 +30,12 @@ EVENT_WEIGHTS = {"noise": 8.0 / 625.0, "count": 1.0 / 625.0}
 MAP_WEIGHTS = ("prior", "posterior")
 FLOOR_STATS = ("mean", "median", "chi2")   # --event-floor (losses.noise_event_loss)
 DENSIFY_FROM = ("all", "blur")      # --densify-from
+# what --event-floor, --event-huber and --densify-from are where a config leaves them unset (None), per event
+# norm: the noise norm's floor at which the penalised chi-square averages as expected, with the blur term
+# deciding densification (docs/fidelity.md, "A floor from the chi-square"); the count norm has no floor or
+# penalty and densifies from the whole loss, as E2NeRF / Ev3DGS
+NORM_DEFAULTS = {"noise": dict(event_floor="chi2", event_huber=3.0, densify_from="blur"),
+                 "count": dict(event_floor="mean", event_huber=0.0, densify_from="all")}
 DEFAULT_REL_MISMATCH = 0.1   # sigma / theta assumed when the scene does not say (DAVIS346: a few hundredths
                              # of thresholds 0.1-0.3)
 
@@ -56,13 +63,15 @@ class TrainConfig:
     event_mismatch: float | None = None  # relative per-pixel threshold spread for the noise norm; None = the
                                       # scene's (simulated) or DEFAULT_REL_MISMATCH
     event_pairs: int = 0              # 0 = all pairs of the b+1 renders, k = k random pairs per step
-    event_floor: str = "mean"         # the noise norm's model floor per step: the "mean" or the "median" of
+    event_floor: str | None = None    # the noise norm's model floor per step: the "mean" or the "median" of
                                       # the pixel-pairs' excess squared residual, or "chi2" (the floor at which
-                                      # their chi-square averages as expected: losses.chi2_floor)
-    event_huber: float = 0.0          # > 0: the noise norm's residuals beyond this many standard deviations
-                                      # pull as |r| (losses.huber); 0 = squared everywhere
-    densify_from: str = "all"         # densification statistics from the gradient of "all" the loss or of
-                                      # the "blur" term alone (one more backward pass through it per step)
+                                      # their chi-square averages as expected: losses.chi2_floor); None = the
+                                      # norm's (NORM_DEFAULTS: the property floor_stat)
+    event_huber: float | None = None  # > 0: the noise norm's residuals beyond this many standard deviations
+                                      # pull as |r| (losses.huber); 0 = squared everywhere; None = the norm's
+    densify_from: str | None = None   # densification statistics from the gradient of "all" the loss or of
+                                      # the "blur" term alone (one more backward pass through it per step);
+                                      # None = the norm's
     frame_noise: float | None = None  # the frames' noise sigma in 8-bit levels: the event weight grows as the
                                       # blur term's error comes down to that noise (frame_noise.py); None =
                                       # estimated from the frames; 0 = off
@@ -114,12 +123,15 @@ class TrainConfig:
         check(self.event_weight is None or self.event_weight >= 0, "--event-weight must be >= 0")
         check(self.event_norm in EVENT_WEIGHTS, f"--event-norm must be one of {', '.join(EVENT_WEIGHTS)}")
         check(self.event_mismatch is None or 0 <= self.event_mismatch <= 1, "--event-mismatch must be in [0, 1]")
-        check(self.event_floor in FLOOR_STATS, f"--event-floor must be one of {', '.join(FLOOR_STATS)}")
-        check(isinstance(self.event_huber, (int, float)) and 0 <= self.event_huber < float("inf"),
+        check(self.event_floor is None or self.event_floor in FLOOR_STATS,
+              f"--event-floor must be one of {', '.join(FLOOR_STATS)}")
+        check(self.event_huber is None or (isinstance(self.event_huber, (int, float))
+                                           and 0 <= self.event_huber < float("inf")),
               "--event-huber must be a number >= 0 (0: off)")
-        check(self.densify_from in DENSIFY_FROM, f"--densify-from must be one of {', '.join(DENSIFY_FROM)}")
-        for flag, on in ((f"--event-floor {self.event_floor}", self.event_floor != "mean"),
-                         ("--event-huber", self.event_huber)):
+        check(self.densify_from is None or self.densify_from in DENSIFY_FROM,
+              f"--densify-from must be one of {', '.join(DENSIFY_FROM)}")
+        for flag, on in ((f"--event-floor {self.event_floor}", self.floor_stat != "mean"),
+                         ("--event-huber", self.huber_c)):
             check(not on or self.event_norm == "noise", f"{flag} needs --event-norm noise (it shapes the noise norm)")
         check(self.frame_noise is None or 0 <= self.frame_noise <= 255,
               "--frame-noise must be auto or a sigma in 8-bit levels in [0, 255]")
@@ -171,6 +183,25 @@ class TrainConfig:
     def uses_events(self) -> bool:
         return (self.event_loss and not self.naive and not self.oracle and self.subposes > 1
                 and self.omega > 0)
+
+    def _norm_default(self, key: str):
+        value = getattr(self, key)
+        return NORM_DEFAULTS.get(self.event_norm, NORM_DEFAULTS["count"])[key] if value is None else value
+
+    @property
+    def floor_stat(self) -> str:
+        """--event-floor, or the event norm's (NORM_DEFAULTS)."""
+        return self._norm_default("event_floor")
+
+    @property
+    def huber_c(self) -> float:
+        """--event-huber, or the event norm's."""
+        return float(self._norm_default("event_huber"))
+
+    @property
+    def densify_source(self) -> str:
+        """--densify-from, or the event norm's."""
+        return self._norm_default("densify_from")
 
     @property
     def omega(self) -> float:

@@ -280,8 +280,8 @@ class Trainer:
                 posterior = tmap is not None and cfg.map_weights == "posterior"   # --map-weights
                 l_event, estimate = noise_event_loss(log_l, counts, pairs, tpm, tnm, data.count_convention,
                                                      self.rel_mismatch, noise, self.event_floor, data.log_knee,
-                                                     tmap.spread if posterior else None, cfg.event_floor,
-                                                     cfg.event_huber)
+                                                     tmap.spread if posterior else None, cfg.floor_stat,
+                                                     cfg.huber_c)
                 self.event_floor = update_floor(self.event_floor, estimate)
                 if tmap is not None:  # this view's equations at the current render; the map solved again
                     tmap.update(v, data.bins[v][:k - 1], tp, tn, self.event_floor, log_l, data.log_knee)
@@ -343,7 +343,7 @@ class Trainer:
         screen-space means (the strategy's statistics), so that the event term's weight, which grows with
         the events' precision, does not decide how many Gaussians are split. None: the statistics come from
         the whole loss's gradient, as the backward pass leaves it."""
-        if not (self.cfg.densify_from == "blur" and self.use_events and self.cfg.densify
+        if not (self.cfg.densify_source == "blur" and self.use_events and self.cfg.densify
                 and self.step < self.strategy.refine_stop):
             return None
         return torch.autograd.grad(l_blur, [info["means2d"] for info in infos], retain_graph=True,
