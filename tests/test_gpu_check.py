@@ -69,18 +69,26 @@ def test_a_run_past_the_deadline_is_scored_where_it_stopped(tmp_path):
     assert r["cut_by_deadline"] and r["steps_done"] == 1 and r["steps"] == 4 and r["test_psnr"] > 5
 
 
-def test_sh_interval_reaches_the_trainer_and_a_bad_one_is_refused(tmp_path):
-    """--sh-interval N (the H100 table's 1000) is the runs' --sh-interval; unset, the trainer's default."""
-    from ev3dgs.train.config import TrainConfig
+def test_trainer_options_reach_the_trainer_and_bad_ones_are_refused(tmp_path):
+    """--sh-interval N, --event-floor, --event-huber, --densify-from (the H100 table's 1000 / mean / 0 / all) are
+    the runs' settings; unset, the trainer's defaults. The choices are the trainer's."""
+    from ev3dgs.train.config import DENSIFY_FROM, FLOOR_STATS, TrainConfig
 
+    assert (gpu_check.FLOOR_STATS, gpu_check.DENSIFY_FROM) == (FLOOR_STATS, DENSIFY_FROM)
     scene = gpu_check.synthetic_scene(tmp_path / "b.h5", 24, 18, views=3)
-    gpu_check.time_training(str(scene), "blur-only", 2, "cpu", "cpu", 100, tmp_path / "a", sh_interval=7)
-    gpu_check.time_training(str(scene), "blur-only", 2, "cpu", "cpu", 100, tmp_path / "d")
+    opts = dict(sh_interval=7, event_floor="mean", event_huber=0.0, densify_from="all")
+    gpu_check.time_training(str(scene), "blur+event", 2, "cpu", "cpu", 100, tmp_path / "a", options=opts)
+    gpu_check.time_training(str(scene), "blur+event", 2, "cpu", "cpu", 100, tmp_path / "d",
+                            options=dict.fromkeys(opts))
     (a,), (d,) = (list((tmp_path / k).glob("*/config.json")) for k in ("a", "d"))
-    assert TrainConfig.load(a).sh_interval == 7
-    assert TrainConfig.load(d).sh_interval == TrainConfig(scene=str(scene), iterations=2).sh_interval
-    with pytest.raises(SystemExit):
-        gpu_check.main(["--dry-run", "--sh-interval", "0"])
+    given, default = TrainConfig.load(a), TrainConfig.load(d)
+    assert (given.sh_interval, given.floor_stat, given.huber_c, given.densify_source) == (7, "mean", 0.0, "all")
+    plain = TrainConfig(scene=str(scene), iterations=2)
+    assert (default.sh_interval, default.floor_stat, default.huber_c, default.densify_source) == \
+        (plain.sh_interval, plain.floor_stat, plain.huber_c, plain.densify_source) != (7, "mean", 0.0, "all")
+    for bad in (["--sh-interval", "0"], ["--event-huber", "-1"], ["--event-floor", "mode"]):
+        with pytest.raises(SystemExit):
+            gpu_check.main(["--dry-run", *bad])
 
 
 def test_past_the_deadline_every_run_is_skipped_and_a_failed_run_is_recorded(tmp_path, monkeypatch):

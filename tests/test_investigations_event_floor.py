@@ -45,7 +45,7 @@ def test_drawn_multipliers_are_the_scene_files_mismatch():
     assert np.array_equal(m, drawn_multipliers("ficus", 72, 96))
 
 
-@pytest.mark.parametrize("opts", [{}, dict(event_floor="chi2", event_huber=3.0, densify_from="blur")])
+@pytest.mark.parametrize("opts", [dict(event_floor="mean", event_huber=0.0, densify_from="all"), {}])
 def test_floor_tail_measures_a_resumed_run_with_any_floor_option(scene_path, tmp_path, opts):
     """floor_tail.measure resumes a run for two steps with the trainer's event loss wrapped, whatever the
     run's floor statistic and penalty (the wrapper passes them on), and summarises each step's excess; the

@@ -209,12 +209,16 @@ def test_bench_sh_interval_fills_only_variants_without_their_own_and_keeps_its_o
     assert all(j["iterations"] == 10 for j in plain + fixed)
     assert not {j["out"] for j in plain} & {j["out"] for j in fixed}
     assert fixed[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_sh1000_s0")
-    # the studies keep the schedule their tables were trained with, through the same merge
-    from bench_fidelity import STUDY_SH_INTERVAL, with_sh_interval
+    # the studies keep the schedule and the event floor their tables were trained with, unless a variant sets
+    # its own
+    from bench_fidelity import study_overrides
+    from study_event_term import ROBUST, VARIANTS as TERM_VARIANTS
 
-    assert with_sh_interval(VARIANTS["blur+event"], STUDY_SH_INTERVAL) == {"sh_interval": 1000}
-    assert with_sh_interval(VARIANTS["oracle-sh"], STUDY_SH_INTERVAL) == {"oracle": True, "sh_interval": 33}
-    assert with_sh_interval(VARIANTS["oracle-sh"], None) is VARIANTS["oracle-sh"]
+    mean = dict(event_floor="mean", event_huber=0.0, densify_from="all")
+    assert study_overrides(VARIANTS["blur+event"]) == {"sh_interval": 1000, **mean}
+    assert study_overrides(VARIANTS["oracle-sh"]) == {"oracle": True, "sh_interval": 33, **mean}
+    robust = study_overrides(TERM_VARIANTS["blur+event-sh-robust"])
+    assert {k: robust[k] for k in ROBUST} == ROBUST and robust["sh_interval"] == 33
 
 
 def test_event_term_plot_draws_every_variant_or_the_ones_asked_for(tmp_path):
@@ -324,3 +328,16 @@ def test_bench_event_norm_fills_only_variants_without_their_own_in_run_folders_o
     assert quiet[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_w4_fn0_s0")
     fixed = make_jobs(["lego"], paths, {"own": {"frame_noise": 5.0}}, 1, tmp_path, None, None, None, 0.0)
     assert fixed[0]["overrides"] == {"frame_noise": 5.0}
+    # --event-floor mean --event-huber 0 --densify-from all (what the option tables were measured with): the
+    # same filling; the blur+event-mean variant sets all three itself
+    from bench_fidelity import MEAN_FLOOR, VARIANTS
+
+    opts = dict(event_floor="mean", event_huber=0.0, densify_from="all")
+    mean = make_jobs(["lego"], paths, {**variants, "blur+event-mean": VARIANTS["blur+event-mean"]}, 1, tmp_path,
+                     None, None, None, None, opts, iterations=10)
+    assert [j["overrides"] for j in mean] == [{**opts, "event_weight": 4 / 625}, {**opts, "event_norm": "noise"},
+                                             MEAN_FLOOR]
+    assert mean[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_w4_floormean_huber0_densifyall_s0")
+    some = make_jobs(["lego"], paths, {"own": {"event_floor": "chi2"}}, 1, tmp_path, None, None, None, None,
+                     dict(event_floor="mean", event_huber=None, densify_from=None))
+    assert some[0]["overrides"] == {"event_floor": "chi2"} and some[0]["out"].endswith("own_floormean_s0")

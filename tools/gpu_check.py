@@ -44,6 +44,9 @@ REPO = Path(__file__).resolve().parents[1]
 SIZES = {"small": (96, 72), "large": (346, 260)}
 VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict()}
 GPU_TESTS = ("test_gsplat_parity.py", "test_gpu_train.py")
+# --event-floor / --densify-from choices, as ev3dgs.train.config's FLOOR_STATS / DENSIFY_FROM (not imported: the
+# check runs before the wheel it installs)
+FLOOR_STATS, DENSIFY_FROM = ("mean", "median", "chi2"), ("all", "blur")
 
 
 class DeadlineReached(Exception):
@@ -95,10 +98,11 @@ def synthetic_scene(path: Path, width: int, height: int, views: int = 6, subfram
 
 
 def time_training(scene: str, variant: str, steps: int, device: str, backend: str, init_points: int,
-                  workdir: Path, deadline: float | None = None, sh_interval: int | None = None) -> dict:
+                  workdir: Path, deadline: float | None = None, options: dict | None = None) -> dict:
     """Train one variant for `steps` steps (cut at `deadline`, a time.perf_counter() value); wall time of the
     fit (ms/step over the steps after the first, whose time includes kernel compilation / loading), then
-    PSNR/SSIM on the sharp test views. ``sh_interval``: --sh-interval (None: the trainer's default, auto)."""
+    PSNR/SSIM on the sharp test views. ``options``: TrainConfig settings given on the command line (--sh-interval,
+    --event-floor, --event-huber, --densify-from; one left out or None: the trainer's default)."""
     import torch
 
     from ev3dgs.train.config import TrainConfig
@@ -107,7 +111,7 @@ def time_training(scene: str, variant: str, steps: int, device: str, backend: st
 
     cfg = TrainConfig(scene=scene, iterations=steps, init_points=init_points, seed=0, device=device, backend=backend,
                       checkpoint_every=max(steps, 1), **VARIANTS[variant],
-                      **({} if sh_interval is None else {"sh_interval": sh_interval}))
+                      **{k: v for k, v in (options or {}).items() if v is not None})
     run = workdir / f"{Path(scene).stem}_{variant}_{steps}_{backend}"
     marks = {}
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
@@ -259,6 +263,13 @@ def main(argv=None) -> int:
     ap.add_argument("--sh-interval", type=int, metavar="N",
                     help="raise the SH degree every N steps (default: the trainer's, auto; the H100 table in "
                          "docs/gpu.md used 1000)")
+    ap.add_argument("--event-floor", choices=FLOOR_STATS,
+                    help="the event term's floor (default: the trainer's, chi2; the H100 table in docs/gpu.md "
+                         "used mean)")
+    ap.add_argument("--event-huber", type=float, metavar="C",
+                    help="the event term's Huber penalty (default: the trainer's, 3; the H100 table used 0)")
+    ap.add_argument("--densify-from", choices=DENSIFY_FROM,
+                    help="which loss decides densification (default: the trainer's, blur; the H100 table used all)")
     ap.add_argument("--cpu-baseline-steps", type=int, default=0,
                     help="first time the cpu backend for this many steps per scene, with the first variant given (the "
                          "speed-up as a ratio measured on the same machine)")
@@ -277,9 +288,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if (args.deadline_minutes is not None and args.deadline_minutes < 0) or args.cpu_baseline_steps < 0 \
             or any(n < 1 for n in args.steps or [1]) or args.init_points < 1 \
-            or (args.sh_interval is not None and args.sh_interval < 1):
-        ap.error("--steps, --init-points and --sh-interval must be >= 1, --deadline-minutes and "
+            or (args.sh_interval is not None and args.sh_interval < 1) \
+            or (args.event_huber is not None and not 0 <= args.event_huber < float("inf")):
+        ap.error("--steps, --init-points and --sh-interval must be >= 1, --deadline-minutes, --event-huber and "
                  "--cpu-baseline-steps >= 0")
+    options = {k: getattr(args, k) for k in ("sh_interval", "event_floor", "event_huber", "densify_from")}
     if args.merge:
         if not args.json:
             ap.error("--merge needs --json")
@@ -314,7 +327,7 @@ def main(argv=None) -> int:
     out = Path(args.json or REPO / "tools" / "results" / f"gpu_{gpu_slug(env.get('gpu', 'dry_run'))}.json")
     result = {"dry_run": args.dry_run, "environment": env, "gpu": env.get("gpu", "none (dry run)"),
               "device": device, "backend": backend, "steps": steps, "variants": args.variants,
-              "deadline_minutes": args.deadline_minutes, "sh_interval": args.sh_interval, "runs": [], "skipped": []}
+              "deadline_minutes": args.deadline_minutes, **options, "runs": [], "skipped": []}
     if not args.dry_run:
         result["kernels"] = build_kernels()
         print("gsplat kernels:", result["kernels"], flush=True)
@@ -348,7 +361,7 @@ def main(argv=None) -> int:
                 continue
             cam = schema.read(scene).camera
             try:
-                r = time_training(scene, variant, n, dev, be, init_points, work / "runs", deadline, args.sh_interval)
+                r = time_training(scene, variant, n, dev, be, init_points, work / "runs", deadline, options)
             except Exception as e:  # noqa: BLE001 - recorded, and the other runs go on
                 failures += 1
                 r = {"variant": variant, "backend": be, "steps": n,

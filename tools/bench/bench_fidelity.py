@@ -43,13 +43,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from derived_scenes import SUBFRAMES  # noqa: E402
 from ev3dgs.sim.dataset import make_dataset  # noqa: E402
 from ev3dgs.sim.scenes import builtin_scenes, load_scene, resolve_render  # noqa: E402
-from ev3dgs.train.config import EVENT_WEIGHTS, TrainConfig  # noqa: E402
+from ev3dgs.train.config import DENSIFY_FROM, EVENT_WEIGHTS, FLOOR_STATS, TrainConfig  # noqa: E402
 from ev3dgs.errors import InputError  # noqa: E402
 from ev3dgs.train.evaluate import evaluate  # noqa: E402
 from ev3dgs.train.jobs import default_jobs, run_parallel  # noqa: E402
 from ev3dgs.train.lpips import load_lpips  # noqa: E402
 from ev3dgs.train.trainer import Trainer  # noqa: E402
 
+# --event-floor mean --event-huber 0 --densify-from all: what the studies' tables of the noise norm were measured
+# with (docs/fidelity.md); the default is the chi-square floor, a Huber penalty at 3 and densification from blur
+MEAN_FLOOR = dict(event_floor="mean", event_huber=0.0, densify_from="all")
 VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict(),
             # plain 3DGS on all 17 sharp sub-frames of every exposure at their own poses (the most any deblurring
             # could recover from these exposures), scored on the scene's own views: see INFO_VARIANTS
@@ -67,8 +70,9 @@ VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blu
             "blur+event-hdr-response": dict(hdr=True, learn_response=True),
             # the events at their weight omega whatever the frames' noise (--frame-noise 0)
             "blur+event-fn0": dict(frame_noise=0.0),
-            # --event-floor chi2 --event-huber 3 --densify-from blur
-            "blur+event-robust": dict(event_floor="chi2", event_huber=3.0, densify_from="blur")}
+            # the mean floor, no penalty, densification from the whole loss (--event-floor mean --event-huber 0
+            # --densify-from all): the noise norm's settings before the chi-square floor became its default
+            "blur+event-mean": dict(MEAN_FLOOR)}
 # variants trained on a scene file derived from the scene's render cache (derived_scenes.py: the kind named)
 INFO_VARIANTS = {"info-oracle": "info"}
 DEFAULT_VARIANTS = ("naive", "blur-only", "blur+event", "info-oracle", "oracle")
@@ -114,31 +118,36 @@ def make_variants(names: list[str], event_weights: list[float] | None) -> dict[s
 
 
 # the SH schedule the studies' documented tables were trained with (the degree raised every 1000 steps:
-# view-independent colour throughout a 1000-step run); they keep it whatever the trainer's default schedule
+# view-independent colour throughout a 1000-step run); they keep it, and the mean floor (MEAN_FLOOR), whatever
+# the trainer's defaults
 STUDY_SH_INTERVAL = 1000
 
 
-def with_sh_interval(overrides: dict, sh_interval: int | None) -> dict:
-    """A variant's TrainConfig overrides with ``sh_interval`` unless the variant sets its own (None: as given)."""
-    return overrides if sh_interval is None else {"sh_interval": sh_interval, **overrides}
+def study_overrides(overrides: dict) -> dict:
+    """A study variant's TrainConfig overrides with the SH schedule and the event-term settings the studies'
+    tables were trained with (STUDY_SH_INTERVAL, MEAN_FLOOR), unless the variant sets its own."""
+    return {"sh_interval": STUDY_SH_INTERVAL, **MEAN_FLOOR, **overrides}
 
 
-RUN_SUFFIX = {"sh_interval": "_sh{}", "event_norm": "_{}", "frame_noise": "_fn{:g}"}   # make_jobs' run folders
+# make_jobs' run folders, per setting given on the command line
+RUN_SUFFIX = {"sh_interval": "_sh{}", "event_norm": "_{}", "frame_noise": "_fn{:g}", "event_floor": "_floor{}",
+              "event_huber": "_huber{:g}", "densify_from": "_densify{}"}
 
 
 def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache: Path, sh_interval: int | None,
               derived: dict | None = None, event_norm: str | None = None, frame_noise: float | None = None,
-              **common) -> list[dict]:
+              event_options: dict | None = None, **common) -> list[dict]:
     """One job per (seed, scene, variant), seed-major (an interrupted run leaves whole seeds). ``sh_interval``:
     the SH schedule of every variant that does not set its own, in run folders of its own (``_shN``), so that
     the default's cached runs stay beside them. ``derived``: {scene: {kind: file}} for INFO_VARIANTS, which
     train on that file and are scored on the scene's own. ``event_norm``, ``frame_noise``: likewise the event
     norm and the frames' noise sigma of every variant that does not set its own, in run folders of their own
-    (``_NORM``, ``_fnSIGMA``)."""
+    (``_NORM``, ``_fnSIGMA``); ``event_options``: {event_floor, event_huber, densify_from: value or None}, the
+    same for those three."""
     # the settings given, for every variant that does not set its own (as with_sh_interval), and the suffix
     # their run folders get
-    fill = {k: v for k, v in (("sh_interval", sh_interval), ("event_norm", event_norm),
-                              ("frame_noise", frame_noise)) if v is not None}
+    given = dict(sh_interval=sh_interval, event_norm=event_norm, frame_noise=frame_noise, **(event_options or {}))
+    fill = {k: v for k, v in given.items() if v is not None}
     suffix = "".join(RUN_SUFFIX[k].format(v) for k, v in fill.items())
     jobs = []
     for seed in range(seeds):
@@ -397,6 +406,16 @@ def main(argv=None) -> int:
                     help="train every variant that does not set its own with --frame-noise SIGMA (8-bit levels; "
                          "default: the trainer's, auto; 0 is how the lowlight rows of the option tables in the "
                          "docs were made)")
+    ap.add_argument("--event-floor", choices=FLOOR_STATS,
+                    help="train every variant that does not set its own with this --event-floor (default: the "
+                         "trainer's, chi2 under the noise norm; mean is what the option tables in the docs were "
+                         "measured with)")
+    ap.add_argument("--event-huber", type=float, metavar="C",
+                    help="train every variant that does not set its own with --event-huber C (default: the "
+                         "trainer's, 3 under the noise norm)")
+    ap.add_argument("--densify-from", choices=DENSIFY_FROM,
+                    help="train every variant that does not set its own with this --densify-from (default: the "
+                         "trainer's, blur under the noise norm)")
     ap.add_argument("--quiet", action="store_true", help="no per-run lines, only the table (default: off)")
     a = ap.parse_args(argv)
     if a.lpips_weights:
@@ -425,6 +444,8 @@ def main(argv=None) -> int:
         ap.error("--sh-interval must be >= 1")
     if a.frame_noise is not None and not 0 <= a.frame_noise <= 255:
         ap.error("--frame-noise must be in [0, 255]")
+    if a.event_huber is not None and not 0 <= a.event_huber < float("inf"):
+        ap.error("--event-huber must be a number >= 0 (0: off)")
     preset["render"] = render
     if a.event_weights and any(not (w >= 0) for w in a.event_weights):
         ap.error("--event-weights must be >= 0")
@@ -445,7 +466,8 @@ def main(argv=None) -> int:
     paths = {name: build_scene(name, render, a.cache, a.quiet, keep_cache=info) for name in scenes}
     derived = {name: derive_scenes(name, paths[name], render, a.cache, a.quiet) for name in scenes} if info else {}
     jobs = make_jobs(scenes, paths, variants, seeds, a.cache, a.sh_interval, derived, a.event_norm,
-                     a.frame_noise,
+                     a.frame_noise, dict(event_floor=a.event_floor, event_huber=a.event_huber,
+                                         densify_from=a.densify_from),
                      iterations=iterations, init_points=a.init_points,
                      lpips_weights=a.lpips_weights and str(a.lpips_weights))
     runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]

@@ -23,7 +23,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools" / "bench"))
 
+from bench_fidelity import MEAN_FLOOR  # noqa: E402
 from ev3dgs.train.jobs import run_parallel  # noqa: E402
 
 
@@ -60,8 +62,9 @@ def _run(job: dict) -> dict:
 
     tm.ThresholdMap._calibrate = calibrate
     out = Path(job["out"])
+    # the mean floor, as the blur+event-mapprior table this is set against (bench_fidelity.MEAN_FLOOR)
     cfg = TrainConfig(scene=job["path"], iterations=job["iterations"], init_points=5000, seed=job["seed"],
-                      checkpoint_every=job["iterations"], threads=1, threshold_map=True)
+                      checkpoint_every=job["iterations"], threads=1, threshold_map=True, **MEAN_FLOOR)
     t = time.perf_counter()
     Trainer(cfg, out, quiet=True).fit()
     m = evaluate(out, write_images=False)

@@ -33,6 +33,8 @@ shared with that study's cache (tools/results/event_term_cache), so its runs are
 files (info-oracle, blur-ideal, and for noisy scenes blur-clean and sharp-noisy) are written there from the
 render cache. Every model is scored on the cell's
 scene file (blur views: the 12 sharp mid-exposure frames; novel views: /test).
+Variants train with the studies' SH schedule and event floor (bench_fidelity.study_overrides: ``--sh-interval
+1000``, ``--event-floor mean --event-huber 0 --densify-from all``) unless they set their own.
 
     python tools/studies/study_attribution.py --json tools/results/study_attribution.json \\
         --plot tools/results/study_attribution.png [--seeds 0 1] [--theta 0.05] [--mismatch 0.1]
@@ -258,7 +260,7 @@ def render_settings(a) -> dict:
 
 
 def main(argv=None) -> int:
-    from bench_fidelity import STUDY_SH_INTERVAL, with_sh_interval
+    from bench_fidelity import study_overrides
 
     from study_event_term import cell_name, make_cells
 
@@ -294,7 +296,7 @@ def main(argv=None) -> int:
             # rest (the study_event_term runs were scored there; its sharp and test frames are the cell's)
             jobs.append(dict(variant=v, seed=seed, train_scene=str(scenes[kind]),
                              eval_scene=str(cell if kind == "cell" else scenes["free"]),
-                             overrides=with_sh_interval(overrides, STUDY_SH_INTERVAL),
+                             overrides=study_overrides(overrides),
                              iterations=a.iterations * mult, init_points=a.init_points,
                              out=str(cache / "runs" / f"{name}_s{seed}")))
     # seed by seed (an interrupted study leaves whole seeds), the slow ones (17 sub-poses, 3x steps) first in

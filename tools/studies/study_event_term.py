@@ -25,6 +25,10 @@ the sub-poses: each view's count from its motion (``--subpose-px 2``, up to 17) 
 threshold 0.05 (tools/results/study_event_term_px2.json), all three with 17 sub-poses at every threshold of the
 10 % row (tools/results/study_event_term_subposes.json).
 
+Every variant is trained with the SH schedule and the event floor of the study's documented tables
+(bench_fidelity.study_overrides: ``--sh-interval 1000``, the mean floor ``--event-floor mean --event-huber 0
+--densify-from all``) unless it sets its own: the ``-robust`` variants use the trainer's default floor.
+
 Runs go two at a time by default (one per core, one thread each) and are cached by settings and trainer code
 in --cache (tools/bench/bench_fidelity.py's run_one), so an interrupted study resumes.
 """
@@ -277,7 +281,7 @@ def plot(summary: dict, thetas, rels, png: Path, variants=None) -> list[str]:
 
 
 def main(argv=None) -> int:
-    from bench_fidelity import STUDY_SH_INTERVAL, with_sh_interval
+    from bench_fidelity import study_overrides
 
     from ev3dgs.train.jobs import default_jobs, run_parallel
 
@@ -327,7 +331,7 @@ def main(argv=None) -> int:
             for cname, path in targets:
                 theta, rel = params.get(cname, (None, 0.0))
                 jobs.append(dict(cell=cname, variant=v, seed=seed, scene_path=str(path),
-                                 overrides=with_sh_interval(variants[v], STUDY_SH_INTERVAL),
+                                 overrides=study_overrides(variants[v]),
                                  iterations=a.iterations, init_points=a.init_points,
                                  out=str(Path(a.cache) / "runs" / f"{cname}_{v}_s{seed}"), scene=a.scene,
                                  theta=theta, rel=rel, blur_fit=a.blur_fit))

@@ -12,6 +12,8 @@ nothing to find): blur-only, blur+event, blur+event with --learn-response, and t
 blur+event-hdr and blur+event-hdr-response add --hdr (give them with --variants). Each model is scored on its own
 training file (its sharp and test frames carry the curve). For the learned curves the JSON gives the largest
 difference between the learned h and the truth S^-1 at the knots.
+Variants train with the studies' SH schedule and event floor (bench_fidelity.study_overrides: ``--sh-interval
+1000``, ``--event-floor mean --event-huber 0 --densify-from all``) unless they set their own.
 
     python tools/studies/study_response.py --json tools/results/study_response.json \\
         --plot tools/results/study_response.png [--seeds 0 1] [--theta 0.05] [--mismatch 0.1] [--contrast 1.5]
@@ -141,7 +143,7 @@ def plot(summary: dict, runs: list[dict], contrast: float, png: Path) -> None:
 
 
 def main(argv=None) -> int:
-    from bench_fidelity import STUDY_SH_INTERVAL, with_sh_interval
+    from bench_fidelity import study_overrides
 
     from study_attribution import add_run_args, render_settings
     from study_event_term import cell_name, make_cells
@@ -174,7 +176,7 @@ def main(argv=None) -> int:
             for kind in ("tone", "srgb") if on_srgb else ("tone",):
                 tag = f"tone_c{a.contrast:g}_{name}" if kind == "tone" else name
                 jobs.append(dict(kind=kind, variant=v, seed=seed, scene=str(scenes[kind]),
-                                 overrides=with_sh_interval(overrides, STUDY_SH_INTERVAL),
+                                 overrides=study_overrides(overrides),
                                  iterations=a.iterations, init_points=a.init_points, contrast=a.contrast,
                                  out=str(cache / "runs" / f"{tag}_{v}_s{seed}")))
     jobs.sort(key=lambda j: (j["seed"], "oracle" in j["variant"]))
