@@ -201,7 +201,7 @@ def test_bench_sh_interval_fills_only_variants_without_their_own_and_keeps_its_o
     variants = {k: VARIANTS[k] for k in ("blur+event", "oracle-sh")}
     paths = {"lego": tmp_path / "lego_96x72.h5"}
     plain = make_jobs(["lego"], paths, variants, 2, tmp_path, None, iterations=10)
-    fixed = make_jobs(["lego"], paths, variants, 2, tmp_path, 1000, iterations=10)
+    fixed = make_jobs(["lego"], paths, variants, 2, tmp_path, dict(sh_interval=1000), iterations=10)
     assert [(j["seed"], j["variant"]) for j in plain] == [(0, "blur+event"), (0, "oracle-sh"), (1, "blur+event"),
                                                           (1, "oracle-sh")]
     assert [j["overrides"].get("sh_interval") for j in plain] == [None, 33, None, 33]
@@ -316,17 +316,18 @@ def test_bench_event_norm_fills_only_variants_without_their_own_in_run_folders_o
     variants = {"blur+event@4": {"event_weight": 4 / 625}, "own": {"event_norm": "noise"}}
     paths = {"lego": tmp_path / "lego_96x72.h5"}
     plain = make_jobs(["lego"], paths, variants, 1, tmp_path, None, iterations=10)
-    count = make_jobs(["lego"], paths, variants, 1, tmp_path, 1000, None, "count", iterations=10)
+    count = make_jobs(["lego"], paths, variants, 1, tmp_path, dict(sh_interval=1000, event_norm="count"),
+                      iterations=10)
     assert [j["overrides"].get("event_norm") for j in plain] == [None, "noise"]
     assert [j["overrides"] for j in count] == [{"sh_interval": 1000, "event_norm": "count", "event_weight": 4 / 625},
                                               {"sh_interval": 1000, "event_norm": "noise"}]
     assert count[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_w4_sh1000_count_s0")
     assert not {j["out"] for j in plain} & {j["out"] for j in count}
-    quiet = make_jobs(["lego"], paths, variants, 1, tmp_path, None, None, None, 0.0, iterations=10)
+    quiet = make_jobs(["lego"], paths, variants, 1, tmp_path, dict(frame_noise=0.0), iterations=10)
     assert [j["overrides"] for j in quiet] == [{"frame_noise": 0.0, "event_weight": 4 / 625},
                                               {"frame_noise": 0.0, "event_norm": "noise"}]
     assert quiet[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_w4_fn0_s0")
-    fixed = make_jobs(["lego"], paths, {"own": {"frame_noise": 5.0}}, 1, tmp_path, None, None, None, 0.0)
+    fixed = make_jobs(["lego"], paths, {"own": {"frame_noise": 5.0}}, 1, tmp_path, dict(frame_noise=0.0))
     assert fixed[0]["overrides"] == {"frame_noise": 5.0}
     # --event-floor mean --event-huber 0 --densify-from all (what the option tables were measured with): the
     # same filling; the blur+event-mean variant sets all three itself
@@ -334,10 +335,12 @@ def test_bench_event_norm_fills_only_variants_without_their_own_in_run_folders_o
 
     opts = dict(event_floor="mean", event_huber=0.0, densify_from="all")
     mean = make_jobs(["lego"], paths, {**variants, "blur+event-mean": VARIANTS["blur+event-mean"]}, 1, tmp_path,
-                     None, None, None, None, opts, iterations=10)
+                     opts, iterations=10)
     assert [j["overrides"] for j in mean] == [{**opts, "event_weight": 4 / 625}, {**opts, "event_norm": "noise"},
                                              MEAN_FLOOR]
     assert mean[0]["out"] == str(tmp_path / "runs" / "lego_96x72" / "blur_event_w4_floormean_huber0_densifyall_s0")
-    some = make_jobs(["lego"], paths, {"own": {"event_floor": "chi2"}}, 1, tmp_path, None, None, None, None,
+    some = make_jobs(["lego"], paths, {"own": {"event_floor": "chi2"}}, 1, tmp_path,
                      dict(event_floor="mean", event_huber=None, densify_from=None))
     assert some[0]["overrides"] == {"event_floor": "chi2"} and some[0]["out"].endswith("own_floormean_s0")
+    with pytest.raises(ValueError, match="threads"):   # a setting without a run-folder suffix
+        make_jobs(["lego"], paths, variants, 1, tmp_path, dict(threads=2))

@@ -129,25 +129,23 @@ def study_overrides(overrides: dict) -> dict:
     return {"sh_interval": STUDY_SH_INTERVAL, **MEAN_FLOOR, **overrides}
 
 
-# make_jobs' run folders, per setting given on the command line
+# the settings the command line can give every variant that does not set its own (--sh-interval, --event-norm,
+# --frame-noise, --event-floor, --event-huber, --densify-from), and the suffix of their run folders
 RUN_SUFFIX = {"sh_interval": "_sh{}", "event_norm": "_{}", "frame_noise": "_fn{:g}", "event_floor": "_floor{}",
               "event_huber": "_huber{:g}", "densify_from": "_densify{}"}
 
 
-def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache: Path, sh_interval: int | None,
-              derived: dict | None = None, event_norm: str | None = None, frame_noise: float | None = None,
-              event_options: dict | None = None, **common) -> list[dict]:
-    """One job per (seed, scene, variant), seed-major (an interrupted run leaves whole seeds). ``sh_interval``:
-    the SH schedule of every variant that does not set its own, in run folders of its own (``_shN``), so that
-    the default's cached runs stay beside them. ``derived``: {scene: {kind: file}} for INFO_VARIANTS, which
-    train on that file and are scored on the scene's own. ``event_norm``, ``frame_noise``: likewise the event
-    norm and the frames' noise sigma of every variant that does not set its own, in run folders of their own
-    (``_NORM``, ``_fnSIGMA``); ``event_options``: {event_floor, event_huber, densify_from: value or None}, the
-    same for those three."""
-    # the settings given, for every variant that does not set its own (as with_sh_interval), and the suffix
-    # their run folders get
-    given = dict(sh_interval=sh_interval, event_norm=event_norm, frame_noise=frame_noise, **(event_options or {}))
-    fill = {k: v for k, v in given.items() if v is not None}
+def make_jobs(scenes: list[str], paths: dict, variants: dict, seeds: int, cache: Path, given: dict | None = None,
+              derived: dict | None = None, **common) -> list[dict]:
+    """One job per (seed, scene, variant), seed-major (an interrupted run leaves whole seeds). ``given``:
+    {setting of RUN_SUFFIX: value or None}, the settings given on the command line: each that is not None
+    trains every variant that does not set its own, in run folders of their own (RUN_SUFFIX: ``_shN``,
+    ``_NORM``, ``_fnSIGMA``, ...), so that the default's cached runs stay beside them. ``derived``: {scene:
+    {kind: file}} for INFO_VARIANTS, which train on that file and are scored on the scene's own."""
+    given = given or {}
+    if set(given) - set(RUN_SUFFIX):
+        raise ValueError(f"make_jobs: no run-folder suffix for {sorted(set(given) - set(RUN_SUFFIX))}")
+    fill = {k: given[k] for k in RUN_SUFFIX if given.get(k) is not None}   # in RUN_SUFFIX's order
     suffix = "".join(RUN_SUFFIX[k].format(v) for k, v in fill.items())
     jobs = []
     for seed in range(seeds):
@@ -465,10 +463,8 @@ def main(argv=None) -> int:
     info = any(v in INFO_VARIANTS for v in variants)
     paths = {name: build_scene(name, render, a.cache, a.quiet, keep_cache=info) for name in scenes}
     derived = {name: derive_scenes(name, paths[name], render, a.cache, a.quiet) for name in scenes} if info else {}
-    jobs = make_jobs(scenes, paths, variants, seeds, a.cache, a.sh_interval, derived, a.event_norm,
-                     a.frame_noise, dict(event_floor=a.event_floor, event_huber=a.event_huber,
-                                         densify_from=a.densify_from),
-                     iterations=iterations, init_points=a.init_points,
+    given = {k: getattr(a, k) for k in RUN_SUFFIX}
+    jobs = make_jobs(scenes, paths, variants, seeds, a.cache, given, derived, iterations=iterations, init_points=a.init_points,
                      lpips_weights=a.lpips_weights and str(a.lpips_weights))
     runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]
     this = len(runs)
@@ -481,9 +477,7 @@ def main(argv=None) -> int:
     scenes = list(dict.fromkeys([*scenes, *(r["scene"] for r in runs)]))
     result = {"settings": {"quick": a.quick, "scenes": scenes, "seeds": seeds, "iterations": iterations,
                            "init_points": a.init_points, "render": render, "dataset_seed": 0, "jobs": a.jobs,
-                           "sh_interval": a.sh_interval, "event_norm": a.event_norm,
-                           "frame_noise": a.frame_noise,
-                           "variants": list(variants), "variant_overrides": variants, "code": code_hash(),
+                           **given, "variants": list(variants), "variant_overrides": variants, "code": code_hash(),
                            "merged": [str(p) for p in a.merge]},
               "summary": summary, "targets": targets(summary["average"]),
               "blurry_input": {r["scene"]: r["metrics"].get("blurry_input", {}).get("psnr") for r in runs},

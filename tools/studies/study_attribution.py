@@ -54,7 +54,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 sys.path.insert(0, str(ROOT / "tools" / "bench"))
 sys.path.insert(0, str(ROOT / "tools" / "studies"))
 
-from derived_scenes import SUBFRAMES, derived_scenes, render_cache  # noqa: E402,F401
+from derived_scenes import SUBFRAMES, derived_scenes, render_cache  # noqa: E402
 from pareto import save_json  # noqa: E402
 
 # variant -> (training scene: "cell" | "free" (the events-free cell the sensor-free runs share) | "info" |
