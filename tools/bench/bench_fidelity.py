@@ -464,8 +464,8 @@ def main(argv=None) -> int:
     paths = {name: build_scene(name, render, a.cache, a.quiet, keep_cache=info) for name in scenes}
     derived = {name: derive_scenes(name, paths[name], render, a.cache, a.quiet) for name in scenes} if info else {}
     given = {k: getattr(a, k) for k in RUN_SUFFIX}
-    jobs = make_jobs(scenes, paths, variants, seeds, a.cache, given, derived, iterations=iterations, init_points=a.init_points,
-                     lpips_weights=a.lpips_weights and str(a.lpips_weights))
+    jobs = make_jobs(scenes, paths, variants, seeds, a.cache, given, derived, iterations=iterations,
+                     init_points=a.init_points, lpips_weights=a.lpips_weights and str(a.lpips_weights))
     runs = [{k: v for k, v in r.items() if k != "wall"} for r in run_jobs(jobs, a.jobs, a.quiet)]
     this = len(runs)
     runs += merged_runs(a.merge, {(r["scene"], r["variant"], r["seed"]) for r in runs}, ap)
