@@ -115,6 +115,10 @@ class Camera:
     background: tuple[float, float, float] | None = None
 
 
+# optional /events attrs of the sensor model (see EventSensor); absent: unknown
+SENSOR_MODEL_ATTRS = ("mismatch_sigma", "leak_rate_hz", "shot_noise_rate_hz")
+
+
 @dataclass
 class EventSensor:
     pos_threshold: float = 0.2                        # log units, nominal
@@ -124,6 +128,10 @@ class EventSensor:
     log_knee: float | None = None                     # optional, for the trainer's log model
     count_convention: str | None = None               # COUNT_CONVENTIONS; None (absent): default_count_convention
     camera_raw_matrix: np.ndarray | None = None       # f8 (3,3) camera raw = M @ linear sRGB; None: identity
+    # the sensor model the trainer's event noise model reads; None (absent): unknown, the trainer's defaults
+    mismatch_sigma: float | None = None               # log units, std of the per-pixel thresholds around nominal
+    leak_rate_hz: float | None = None                 # Hz per pixel, leak (background ON) events
+    shot_noise_rate_hz: float | None = None           # Hz per pixel, shot-noise events (ON+OFF) at intensity 0
 
 
 @dataclass
@@ -324,6 +332,9 @@ def _write_contents(f: h5py.File, s: Scene, config: str, created: str, check=Non
         ev.attrs["count_convention"] = str(sn.count_convention)
     if sn.camera_raw_matrix is not None:
         ev.attrs["camera_raw_matrix"] = _cast(sn.camera_raw_matrix, np.float64, "/events")
+    for key in SENSOR_MODEL_ATTRS:
+        if getattr(sn, key) is not None:
+            ev.attrs[key] = float(getattr(sn, key))
     for group, items in _PARTS.items():
         part = getattr(s, group)
         g = None if part is None else f.create_group(group)
@@ -413,7 +424,8 @@ def read(path: str | os.PathLike, require_complete: bool = True) -> Scene:
                              int(refr) if _is_int(refr) else float(refr),
                              float(ea["log_knee"]) if "log_knee" in ea else None,
                              _str(ea["count_convention"]) if "count_convention" in ea else None,
-                             np.asarray(ea["camera_raw_matrix"], np.float64) if "camera_raw_matrix" in ea else None)
+                             np.asarray(ea["camera_raw_matrix"], np.float64) if "camera_raw_matrix" in ea else None,
+                             **{k: float(ea[k]) for k in SENSOR_MODEL_ATTRS if k in ea})
         events = LazyEvents(*(lazy(f"/events/{n}") for n, _ in _EVENT_DTYPES))
         parts = {group: _CLASSES[group](*(None if f"/{group}/{n}" not in f else
                                           lazy(f"/{group}/{n}") if large else get(f"/{group}/{n}")

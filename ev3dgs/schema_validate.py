@@ -365,6 +365,9 @@ def _validate_events(f: h5py.File, W: int, H: int, exposure: np.ndarray | None, 
     _real(ev, "pos_threshold", "/events", 0.0, True)
     _real(ev, "neg_threshold", "/events", 0.0, True)
     _real(ev, "refractory_us", "/events", 0.0, False)
+    for key in ("mismatch_sigma", "leak_rate_hz", "shot_noise_rate_hz"):  # optional sensor model, >= 0
+        if key in ev.attrs:
+            _real(ev, key, "/events", 0.0, False)
     if "log_knee" in ev.attrs:  # the trainer takes log(knee) and divides by it: 0 is not a knee
         _real(ev, "log_knee", "/events", 0.0, True)
     cf = _str(ev.attrs.get("color_filter"))

@@ -24,6 +24,9 @@ def event_sensor(cfg: DVSConfig, isp: ISPConfig | None = None) -> EventSensor:
         log_knee=cfg.log_knee,
         count_convention="exact_reference" if cfg.reference == "exact" else "random_phase",
         camera_raw_matrix=raw,
+        mismatch_sigma=cfg.threshold_mismatch.sigma if cfg.threshold_mismatch else 0.0,
+        leak_rate_hz=cfg.leak.rate_hz if cfg.leak else 0.0,
+        shot_noise_rate_hz=cfg.shot_noise.rate_hz if cfg.shot_noise else 0.0,
     )
 
 
