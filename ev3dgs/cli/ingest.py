@@ -108,8 +108,9 @@ def _davis(args) -> int:
                         poses=not args.no_poses, calibration=args.calibration, frames_stream=args.frames_stream,
                         events_stream=args.events_stream, pos_threshold=args.pos_threshold,
                         neg_threshold=args.neg_threshold, color_filter=args.color_filter, strict=args.strict,
-                        sensor_size=args.sensor_size)
-    stats = ingest_davis(args.recording, args.out, opts)
+                        sensor_size=args.sensor_size, min_registered=args.min_registered,
+                        check_motion=not args.no_motion_check)
+    stats = ingest_davis(args.recording, args.out, opts, quiet=args.quiet)
     for w in dict.fromkeys(stats.warnings):
         print(f"warning: {w}", file=sys.stderr)
     if not args.quiet:
@@ -168,7 +169,16 @@ def build_parser():
                         "(default %(default)s ms)")
     d.add_argument("--subposes", type=int, default=5, help="EDI latent frames / poses per view (default %(default)s)")
     d.add_argument("--no-poses", action="store_true",
-                   help="skip EDI + pycolmap pose estimation (default: off, poses are estimated)")
+                   help="skip EDI + pycolmap pose estimation: a scene file without poses, for `ev3dgs info`, "
+                        "`ev3dgs view --out` and `ev3dgs export-dataset`, not for training (default: off, poses "
+                        "are estimated)")
+    d.add_argument("--min-registered", type=finite_float, default=0.5,
+                   help="fraction of the EDI sub-frames pycolmap must register, else ingest fails "
+                        "(default %(default)s)")
+    d.add_argument("--no-motion-check", action="store_true",
+                   help="estimate poses even when the IMU and the frames show a camera that did not move "
+                        "(default: off, such a recording is refused in seconds: pose estimation needs a moving "
+                        "camera)")
     d.add_argument("--sensor-size", type=_sensor_size, metavar="WxH",
                    help="sensor size of an AEDAT 2.0/3.1 recording whose header names no camera, e.g. 240x180 "
                         "(default: from the header; without one, inferred from the addresses with a warning)")

@@ -16,7 +16,11 @@ its sparse points -> /points. A view is kept only if all its latent frames regis
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import sys
 import tempfile
+import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +35,7 @@ from ..logmap import DEFAULT_LOG_KNEE
 from .calibration import load_calibration
 from .recording import open_recording
 from .edi import linear_to_srgb
+from .motion import MotionCheck, camera_motion
 from .types import FrameData
 
 BAYER = ("RGGB", "BGGR", "GRBG", "GBRG")
@@ -51,7 +56,9 @@ class DavisOptions:
     pos_threshold: float = 0.2        # the recording does not store the bias-derived thresholds
     neg_threshold: float = 0.2
     color_filter: str = "none"        # the DVS colour filter of a colour DAVIS346: pass it, it is not in the file
-    min_registered: float = 0.5
+    min_registered: float = 0.5       # fraction of the latent frames pycolmap must register
+    check_motion: bool = True         # refuse pose estimation on a camera that did not move (ev3dgs.io.motion)
+    motion: MotionCheck = MotionCheck()
     aps_linear: bool = True           # DAVIS APS frames are linear in light: sRGB-encode them for the scene
     strict: bool = False              # reader: raise on a corrupt packet / contradicted value instead of dropping it
     sensor_size: tuple[int, int] | None = None   # AEDAT 2.0/3.1 without a camera name in the header: (W, H)
@@ -69,6 +76,8 @@ class DavisOptions:
             raise InputError(f"--color-filter must be none or one of {', '.join(BAYER)}")
         if not (self.pos_threshold > 0 and self.neg_threshold > 0):
             raise InputError("thresholds must be > 0")
+        if not (0 <= self.min_registered <= 1):
+            raise InputError(f"--min-registered must be a fraction in [0, 1], got {self.min_registered}")
         if not (np.isfinite(self.event_margin_ms) and self.event_margin_ms >= 0):  # < 0 keeps no event at all
             raise InputError(f"--event-margin-ms must be a finite number >= 0, got {self.event_margin_ms}")
 
@@ -211,15 +220,80 @@ def undistort(images: list[np.ndarray], ev: Events, K: np.ndarray, dist: np.ndar
     return images, ev
 
 
-def estimate_view_poses(images: list[np.ndarray], ev: Events, views: list[FrameData], K, opts: DavisOptions):
+class StaticCameraError(InputError):
+    """The recording's camera did not move: no pose can be estimated from it."""
+
+
+class _Progress:
+    """One line on a terminal, rewritten in place (nothing when stderr is not a terminal or quiet)."""
+
+    def __init__(self, quiet: bool):
+        self.on = not quiet and sys.stderr.isatty()
+        self.t0 = time.monotonic()
+        self.width = 0
+
+    def __call__(self, text: str) -> None:
+        if self.on:
+            line = f"{text} [{time.monotonic() - self.t0:.0f} s]"
+            sys.stderr.write("\r" + line.ljust(self.width))
+            sys.stderr.flush()
+            self.width = len(line)
+
+    def close(self) -> None:
+        if self.on and self.width:
+            sys.stderr.write("\r" + " " * self.width + "\r")
+            sys.stderr.flush()
+            self.width = 0
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts():
+    """SIGTERM raises KeyboardInterrupt, as Ctrl-C does: temporary files are removed and the CLI ends with
+    one line. Only in the main thread (signal handlers can be set only there)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _pose_hint(opts: DavisOptions, registered: int) -> str:
+    """What the user can still try after pycolmap registered too few latent frames."""
+    tips = []
+    if registered >= 2 and opts.min_registered > 0:
+        tips.append(f"a lower --min-registered (now {opts.min_registered:g}) keeps the frames that did register")
+    if not opts.calibration:
+        tips.append("--calibration with the lens calibration (pycolmap had to estimate the focal length too)")
+    if opts.subposes > 2:
+        tips.append(f"fewer --subposes (now {opts.subposes}): fewer, less noisy latent frames per frame")
+    tips.append("--no-poses writes the frames, events and IMU without poses (for `ev3dgs info`, `ev3dgs view "
+                "--out` and `ev3dgs export-dataset`)")
+    return "try " + "; ".join(tips)
+
+
+def estimate_view_poses(images: list[np.ndarray], ev: Events, views: list[FrameData], K, opts: DavisOptions,
+                        progress=None):
     """EDI latent frames per view -> pycolmap. Returns (kept view indices, poses (n,S,4,4), pose_t (n,S),
     K used, points or None, registered count)."""
-    from .colmap import estimate_poses
+    from .colmap import PoseEstimationError, estimate_poses
     from .edi import edi_latent_frames, edi_to_uint8
 
+    say = progress or (lambda text: None)
     S = opts.subposes
+    N = len(views) * S
     latent_imgs, times = [], []
     for img, v in zip(images, views):
+        say(f"EDI: {len(latent_imgs):,} of {N:,} sub-frames ({len(views)} frames x {S})")
         t = np.round(np.linspace(v.exposure_start, v.exposure_end, S)).astype(np.int64)
         w = ev.window(v.exposure_start, v.exposure_end + 1)
         gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0  # APS values are linear
@@ -227,8 +301,16 @@ def estimate_view_poses(images: list[np.ndarray], ev: Events, views: list[FrameD
                                 opts.pos_threshold, opts.neg_threshold)
         latent_imgs.extend(edi_to_uint8(frame) for frame in lat)
         times.append(t)
+    stages = {"features": "SIFT features", "matching": "matching", "mapping": "mapping"}
+
+    def colmap_progress(stage: str, registered: int) -> None:
+        reg = f", {registered:,} registered so far" if stage == "mapping" else ""
+        say(f"pose estimation: {stages[stage]} on {N:,} sub-frames ({len(views)} frames x {S}){reg}")
+
     with tempfile.TemporaryDirectory(prefix="ev3dgs_colmap_") as work:
-        res = estimate_poses(latent_imgs, K, Path(work), min_registered=opts.min_registered)
+        res = estimate_poses(latent_imgs, K, Path(work), min_registered=opts.min_registered,
+                             progress=colmap_progress, what=f"sub-frames ({len(views)} frames x {S})",
+                             hint=lambda registered: _pose_hint(opts, registered))
     kept, poses = [], []
     for i in range(len(views)):
         ps = res.poses[i * S:(i + 1) * S]
@@ -236,12 +318,37 @@ def estimate_view_poses(images: list[np.ndarray], ev: Events, views: list[FrameD
             kept.append(i)
             poses.append(np.stack(ps))
     if not kept:
-        raise InputError("no view had all its latent frames registered by pycolmap")
+        raise PoseEstimationError(f"pycolmap registered {res.num_registered} of {N} sub-frames ({len(views)} frames "
+                                  f"x {S}), but no frame had all its {S} sub-frames registered; "
+                                  + _pose_hint(opts, res.num_registered))
     return kept, np.stack(poses), np.stack([times[i] for i in kept]), res.K, res, res.num_registered
+
+
+def check_camera_moved(path, images: list[np.ndarray], imu, K, W: int, H: int, opts: DavisOptions):
+    """Raise StaticCameraError when the IMU and the frames show a camera that did not move (ev3dgs.io.motion).
+    Returns the MotionReport."""
+    f = float(K[0, 0]) if K is not None else 0.5 * W / np.tan(np.deg2rad(35))
+    gray = [cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) for img in images]
+    report = camera_motion(gray, f, imu, opts.motion)
+    if report.static:
+        raise StaticCameraError(
+            f"{path}: the camera did not move: {report.evidence()}. Training a 3D scene needs a recording made "
+            "with a moving camera (views from different places), so no poses can be estimated from this one. "
+            "With --no-poses ingest writes the frames, events and IMU without poses, for `ev3dgs info`, `ev3dgs "
+            "view --out` and `ev3dgs export-dataset`; `ev3dgs-sim calibrate` and `ev3dgs-sim compare` read the "
+            "recording itself (--no-motion-check estimates poses regardless)")
+    return report
 
 
 def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOptions(),
                  quiet: bool = True) -> IngestStats:
+    """`quiet`: no progress line on a terminal during EDI and pose estimation. SIGTERM ends it as Ctrl-C does
+    (KeyboardInterrupt), with no temporary file left."""
+    with _sigterm_interrupts():
+        return _ingest_davis(path, out, opts, quiet)
+
+
+def _ingest_davis(path, out, opts: DavisOptions, quiet: bool) -> IngestStats:
     out = Path(out)
     stats = IngestStats(out)
     with warnings.catch_warnings():
@@ -278,8 +385,15 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
     exposure = np.array([(v.exposure_start, v.exposure_end) for v in views], np.int64)
     train_kw, points = {}, None
     if opts.poses:
+        if opts.check_motion:
+            check_camera_moved(path, images, imu, K, W, H, opts)
         stats.latent_frames = len(views) * opts.subposes
-        kept, poses, pose_t, K, res, stats.registered = estimate_view_poses(images, ev, views, K, opts)
+        progress = _Progress(quiet)
+        try:
+            kept, poses, pose_t, K, res, stats.registered = estimate_view_poses(images, ev, views, K, opts,
+                                                                                progress)
+        finally:
+            progress.close()
         # the views pose estimation dropped, for `ev3dgs view` (index among the usable frames, exposure, us)
         unregistered = [{"frame": i, "exposure": [int(v.exposure_start), int(v.exposure_end)]}
                         for i, v in enumerate(views) if i not in set(kept)]
@@ -305,7 +419,7 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
         train=schema.Train(images=np.stack(images), exposure=exposure, transfer="srgb", **train_kw),
         points=points,
         imu=schema.Imu(t=imu.t, accel=imu.accel, gyro=imu.gyro, temperature=imu.temperature) if len(imu) else None,
-        config={"recording": str(path), "format": fmt, "options": opts.__dict__,
+        config={"recording": str(path), "format": fmt, "options": dataclasses.asdict(opts),
                 "intrinsics": "calibration file" if opts.calibration else
                 ("pycolmap estimate" if opts.poses else "nominal 70-degree guess (no calibration, no poses)"),
                 "input_distortion": dist_in.tolist(), "undistorted": bool(np.any(dist_in != 0)),
