@@ -311,7 +311,7 @@ def test_ingest_records_the_views_that_failed_to_register(tmp_path, monkeypatch)
     if not shared.exists():
         pytest.skip("shared recording not present")
 
-    def fake_estimate(images, ev, views, K, opts):
+    def fake_estimate(images, ev, views, K, opts, progress=None):
         kept = [0, len(views) - 1]
         t = np.stack([np.linspace(views[i].exposure_start, views[i].exposure_end, opts.subposes).astype(np.int64)
                       for i in kept])
