@@ -93,8 +93,16 @@ def test_static_camera_is_refused_before_edi_and_pose_estimation(tmp_path, capsy
     assert "the camera did not move" in line and "moving camera" in line and "--no-poses" in line
     assert ("IMU samples" in line) == (imu is not None) and "image motion" in line
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["static.aedat4"]
+    assert "export-dataset --format events-h5 or aedat4" in line
     # --no-poses gives the file (no pose estimation involved)
     assert ingest_cli.main(["davis", str(rec), "--out", str(out), "--no-poses", "--quiet"]) == 0 and out.is_file()
+    # what the message says the file is for works on it
+    assert ev3dgs_cli.main(["info", str(out)]) == 0
+    assert ev3dgs_cli.main(["view", str(out), "--out", str(tmp_path / "v.png"), "--quiet"]) == 0
+    for fmt in ("events-h5", "aedat4"):
+        assert ev3dgs_cli.main(["export-dataset", str(out), "--format", fmt, "--out", str(tmp_path / fmt),
+                                "--quiet"]) == 0
+    capsys.readouterr()
     # and train on it does not send the user back to ingest in a loop
     line = _one_line(capsys, ev3dgs_cli.main(["train", str(out), "--out", str(tmp_path / "run"), "--quiet"]))
     assert "moving camera" in line and "--no-poses" in line and "export-dataset" in line

@@ -170,8 +170,8 @@ def build_parser():
     d.add_argument("--subposes", type=int, default=5, help="EDI latent frames / poses per view (default %(default)s)")
     d.add_argument("--no-poses", action="store_true",
                    help="skip EDI + pycolmap pose estimation: a scene file without poses, for `ev3dgs info`, "
-                        "`ev3dgs view --out` and `ev3dgs export-dataset`, not for training (default: off, poses "
-                        "are estimated)")
+                        "`ev3dgs view --out` and `ev3dgs export-dataset --format events-h5 or aedat4`, not for "
+                        "training (default: off, poses are estimated)")
     d.add_argument("--min-registered", type=finite_float, default=0.5,
                    help="fraction of the EDI sub-frames pycolmap must register, else ingest fails "
                         "(default %(default)s)")

@@ -274,10 +274,12 @@ def _pose_hint(opts: DavisOptions, registered: int) -> str:
         tips.append(f"a lower --min-registered (now {opts.min_registered:g}) keeps the frames that did register")
     if not opts.calibration:
         tips.append("--calibration with the lens calibration (pycolmap had to estimate the focal length too)")
+    if opts.every > 1 or opts.max_views is not None:
+        tips.append("more frames (--every 1, no --max-views): more overlap between neighbouring frames")
     if opts.subposes > 2:
-        tips.append(f"fewer --subposes (now {opts.subposes}): fewer, less noisy latent frames per frame")
+        tips.append(f"fewer --subposes (now {opts.subposes}): a frame is kept only if all its sub-frames register")
     tips.append("--no-poses writes the frames, events and IMU without poses (for `ev3dgs info`, `ev3dgs view "
-                "--out` and `ev3dgs export-dataset`)")
+                "--out` and `ev3dgs export-dataset --format events-h5 or aedat4`)")
     return "try " + "; ".join(tips)
 
 
@@ -335,8 +337,8 @@ def check_camera_moved(path, images: list[np.ndarray], imu, K, W: int, H: int, o
             f"{path}: the camera did not move: {report.evidence()}. Training a 3D scene needs a recording made "
             "with a moving camera (views from different places), so no poses can be estimated from this one. "
             "With --no-poses ingest writes the frames, events and IMU without poses, for `ev3dgs info`, `ev3dgs "
-            "view --out` and `ev3dgs export-dataset`; `ev3dgs-sim calibrate` and `ev3dgs-sim compare` read the "
-            "recording itself (--no-motion-check estimates poses regardless)")
+            "view --out` and `ev3dgs export-dataset --format events-h5 or aedat4`; `ev3dgs-sim calibrate` and "
+            "`ev3dgs-sim compare` read the recording itself (--no-motion-check estimates poses regardless)")
     return report
 
 

@@ -10,7 +10,7 @@ would spend minutes before failing. Two witnesses, both from data the ingest has
   has std / sigma_diff = 1 / sqrt(1 - exp(-2 pi B / fs)) (first-order filter), so every axis of gyroscope and
   accelerometer whose std over the recording stays below that ratio for B = `imu_min_bandwidth_hz` is
   consistent with a sensor at rest. A camera carried by hand varies many times its noise (the DAVIS346
-  recording in the aestream repository: 16 x on the gyroscope).
+  recording in the aestream repository: 18 x on the gyroscope).
 * the APS frames: dense optical flow (Farneback) from the first used frame to up to `max_frames` others spread
   over the recording; the median displacement over the textured half of the pixels (moving objects, which
   occupy a minority of the frame, do not move the median). The camera moved too little when that median stays

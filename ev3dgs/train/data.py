@@ -116,7 +116,8 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
         raise InputError(f"{path}: /train/poses is missing (a recording ingested with --no-poses): training needs "
                          "camera poses, which `ev3dgs-ingest davis` estimates only from a recording made with a "
                          "moving camera; a static camera's file is for `ev3dgs info`, `ev3dgs view --out` and "
-                         "`ev3dgs export-dataset`, and `ev3dgs-sim calibrate` / `compare` read its recording")
+                         "`ev3dgs export-dataset --format events-h5 or aedat4`, and `ev3dgs-sim calibrate` / "
+                         "`compare` read its recording")
     if subposes < 1:
         raise InputError(f"--subposes must be >= 1, got {subposes}")
     N, H, W = len(tr), sc.camera.height, sc.camera.width
