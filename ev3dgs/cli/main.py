@@ -152,7 +152,7 @@ def _eval(args) -> int:
 
         raise InputError("give either --lpips NET (standard weights, fetched once) or --lpips-weights FILE")
     m = evaluate(args.run, lpips_weights=args.lpips or args.lpips_weights, device=args.device, scene=args.scene,
-                 force=args.force)
+                 force=args.force, other_scene=args.other_scene)
     for key, label in (("test", "novel views"), ("novel_view_unaligned", "novel views, unaligned"),
                        ("train_sharp", "deblurred training views"),
                        ("blur_view_given_poses", "deblurred, at given poses"),
@@ -200,7 +200,7 @@ def _render(args) -> int:
         check_output_dir(args.out, force=args.force)
     else:
         check_output_file(args.out, make_parents=True, force=args.force)
-    cfg, model = load_run(args.run, scene=args.scene)
+    cfg, model = load_run(args.run, scene=args.scene, other_scene=args.other_scene)
     sc = schema.read(cfg.scene)
     _need_backend(cfg.backend)
     W, H = sc.camera.width, sc.camera.height
@@ -259,6 +259,12 @@ def _validate(args) -> int:
         print(f"warning: {note}", file=sys.stderr)
     _say(args, f"{args.file}: valid")
     return 0
+
+
+def _add_other_scene(p, verb: str) -> None:
+    p.add_argument("--other-scene", action="store_true",
+                   help=f"with --scene: {verb} on a scene file that is not the one the run was trained on (its name, "
+                        "size or creation time differs; default: off, such a file is refused)")
 
 
 def build_parser():
@@ -426,6 +432,7 @@ def build_parser():
     e.add_argument("--scene", metavar="FILE",
                    help="the scene file to evaluate on (default: the one the run records, looked for relative to "
                         "the run folder, at its absolute path, then by name beside the run folder and its parents)")
+    _add_other_scene(e, "evaluate")
     add_output_options(e, force_help="evaluate a run that has metrics.json already, replacing it and the eval "
                                      "images (default: off, refused)")
     e.set_defaults(func=_eval)
@@ -442,6 +449,7 @@ def build_parser():
                         "default: the scene's camera size)")
     r.add_argument("--scene", metavar="FILE",
                    help="the scene file whose cameras and background are used (default: the one the run records)")
+    _add_other_scene(r, "render")
     r.add_argument("--given-poses", action="store_true",
                    help="for a --refine-poses run, build the orbit around the scene's given poses instead of the "
                         "refined trajectory (trajectory.npz) the model was trained in (default: off)")

@@ -43,9 +43,11 @@ from .metrics import lpips_unavailable_reason, psnr, ssim_metric
 from .trainer import resolve_device
 
 
-def load_run(run_dir: str | Path, device="cpu", scene: str | Path | None = None, find_scene: bool = True):
+def load_run(run_dir: str | Path, device="cpu", scene: str | Path | None = None, find_scene: bool = True,
+             other_scene: bool = False):
     """(TrainConfig, GaussianModel) of a finished run. The config's ``scene`` is the scene file found by
-    run_scene.resolve_scene (``scene``: the --scene override), an absolute path: any working folder works,
+    run_scene.resolve_scene (``scene``: the --scene override, refused when it is not the run's scene unless
+    ``other_scene``), an absolute path: any working folder works,
     and so does a run moved together with its scene. ``find_scene=False`` (the model alone is needed, e.g.
     export): the recorded path is kept as it is and a missing scene is no error."""
     import dataclasses
@@ -57,7 +59,7 @@ def load_run(run_dir: str | Path, device="cpu", scene: str | Path | None = None,
         raise InputError(f"{run}: not a finished training run (config.json and model.pt expected)")
     cfg = TrainConfig.load(run / "config.json")
     if find_scene or scene is not None:
-        cfg = dataclasses.replace(cfg, scene=str(resolve_run_scene(run, scene)))
+        cfg = dataclasses.replace(cfg, scene=str(resolve_run_scene(run, scene, other_scene)))
     try:
         payload = torch.load(run / "model.pt", map_location=device, weights_only=False)
     except (OSError, RuntimeError, EOFError) as e:
@@ -158,13 +160,15 @@ def _png(path: Path, images, labels) -> None:
 
 
 def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str = "auto",
-             write_images: bool = True, scene: str | Path | None = None, force: bool = True) -> dict:
+             write_images: bool = True, scene: str | Path | None = None, force: bool = True,
+             other_scene: bool = False) -> dict:
     """Score the run in `run_dir` (see the module doc) -> RUN/metrics.json and RUN/eval/*.png. `scene`: the
-    scene file instead of the one the run records; without `force` an existing metrics.json is refused
-    (OutputError). The earlier evaluation's images are removed."""
+    scene file instead of the one the run records (one that is not the run's scene, by name, size or
+    fingerprint, only with `other_scene`); without `force` an existing metrics.json is refused (OutputError).
+    The earlier evaluation's images are removed."""
     run = Path(run_dir)
     dev = resolve_device(device)
-    cfg, model = load_run(run, dev, scene=scene)
+    cfg, model = load_run(run, dev, scene=scene, other_scene=other_scene)
     import errno
 
     from ..outputs import OutputError, check_output_dir, remove_stale_temps

@@ -315,18 +315,20 @@ def _refined(run: Path, sc: SceneContent):
     return poses, pose_t
 
 
-def _scene_of_run(run: Path, config: dict, override: str | os.PathLike | None = None) -> Path:
+def _scene_of_run(run: Path, config: dict, override: str | os.PathLike | None = None,
+                  other_scene: bool = False) -> Path:
     """The run's scene file (train/run_scene.py): the --scene override, else the path config.json records
     relative to the run folder, its absolute path, an old run's path as given (from the current folder, the
     run folder or its parents), the file name beside the run folder or in its parents."""
     from ..train.run_scene import resolve_scene
 
-    return resolve_scene(run, config, override)
+    return resolve_scene(run, config, override, other_scene)
 
 
-def load_run_content(run_dir: str | os.PathLike, device="cpu", scene: str | os.PathLike | None = None) -> RunContent:
+def load_run_content(run_dir: str | os.PathLike, device="cpu", scene: str | os.PathLike | None = None,
+                     other_scene: bool = False) -> RunContent:
     """A run folder's model (model.pt, or the latest ckpt.pt of a run still training) and its scene (`scene`:
-    the --scene override)."""
+    the --scene override; one that is not the run's scene only with `other_scene`)."""
     from ..splat.model import GaussianModel
     from ..train.checkpoint import read_checkpoint
 
@@ -342,11 +344,11 @@ def load_run_content(run_dir: str | os.PathLike, device="cpu", scene: str | os.P
         raise InputError(f"{run / 'config.json'}: not readable ({e})") from None
     if not isinstance(config, dict) or not isinstance(config.get("scene"), str):
         raise InputError(f"{run / 'config.json'}: names no scene file")
-    scene_path = _scene_of_run(run, config, scene)
+    scene_path = _scene_of_run(run, config, scene, other_scene)
     if (run / "model.pt").is_file():
         from ..train.evaluate import load_run
 
-        _, model = load_run(run, device, scene=scene_path)
+        _, model = load_run(run, device, scene=scene_path, other_scene=True)  # checked just above
         source = "model.pt"
     elif (run / "ckpt.pt").is_file():
         payload = read_checkpoint(run / "ckpt.pt", device)
