@@ -15,7 +15,7 @@ import os
 import warnings
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import Ev3dgsWarning, InputError
 
 __all__ = ["scene_record", "scene_fingerprint_of", "same_scene_file", "scene_difference", "resolve_scene",
            "resolve_run_scene"]
@@ -132,6 +132,12 @@ def resolve_scene(run_dir: str | os.PathLike, config: dict, override: str | os.P
         p = Path(override)
         if not p.is_file():
             raise InputError(f"--scene {override}: no such file")
+        import h5py
+
+        if not h5py.is_hdf5(p):
+            from ..schema import not_a_scene
+
+            raise InputError(not_a_scene(p, "not HDF5"))
         differs = None if other_scene else scene_difference(record, p)
         if differs is not None:
             raise InputError(f"--scene {override} is not the scene the run {run} was trained on ({differs}); "
@@ -144,7 +150,8 @@ def resolve_scene(run_dir: str | os.PathLike, config: dict, override: str | os.P
             return Path(os.path.abspath(p))
     if existing:
         warnings.warn(f"{existing[0]} is not the scene file the run {run} was trained on (its size or "
-                      "creation time differs); using it anyway (give --scene FILE to choose another)", stacklevel=2)
+                      "creation time differs); using it anyway (give --scene FILE to choose another)", Ev3dgsWarning,
+                      stacklevel=2)
         return Path(os.path.abspath(existing[0]))
     if not looked:
         raise InputError(f"{run / 'config.json'}: names no scene file (give --scene FILE)")
