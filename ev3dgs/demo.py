@@ -31,7 +31,7 @@ from .train.jobs import default_jobs
 
 DEMO_RENDER = dict(views=10, test_views=3)
 DEMO_ITERATIONS = 1500
-# `--test-size`: the same chain in seconds (a check that everything runs, not a result)
+# `--test-size`: the same chain in a few minutes (a check that everything runs, not a result)
 TEST_SIZE = dict(views=3, test_views=1, width=48, height=36, samples=2)
 TEST_ITERATIONS = 20
 VARIANT_ORDER = ("naive", "blur-only", "blur+event")
@@ -254,8 +254,10 @@ def progress_line(name: str, state: dict | None, iterations: int, now: float) ->
         return f"{name:11s} waiting"
     if state.get("done"):
         return f"{name:11s} done: {iterations}/{iterations} steps in {_fmt_time(state['elapsed'])}"
-    step, elapsed = state["step"], now - state["t0"]
-    eta = elapsed / step * (iterations - step) if step else float("nan")
+    step, elapsed = state["step"], now - state.get("start", state["t0"])
+    # the rate since the first report (the worker's start-up and data loading come before it)
+    rate = (step - state.get("step0", 0)) / (now - state["t0"]) if now > state["t0"] else 0.0
+    eta = (iterations - step) / rate if rate > 0 else float("nan")
     loss = f"loss {state['loss']:.5f}" if state.get("loss") is not None else "loss -"
     return (f"{name:11s} {step:>6d}/{iterations} steps ({100 * step / iterations:3.0f} %)  {loss}  "
             f"{_fmt_time(elapsed)} elapsed, ETA {_fmt_time(eta) if eta == eta else '-'}")
@@ -272,6 +274,7 @@ class Progress:
         self.state: dict[str, dict] = {}
         self._stop = threading.Event()
         self._drawn = 0
+        self.start = time.perf_counter()
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
     def __enter__(self):
@@ -294,9 +297,10 @@ class Progress:
             except (_q.Empty, EOFError, OSError):
                 return
             now = time.perf_counter()
-            st = self.state.setdefault(name, {"t0": now, "step": 0, "loss": None, "printed": 0})
+            st = self.state.setdefault(name, {"start": self.start, "t0": now, "step0": step, "step": 0,
+                                              "loss": None, "printed": 0})
             if step < 0:        # the worker's "finished"
-                st.update(done=True, elapsed=now - st["t0"])
+                st.update(done=True, elapsed=now - st["start"])
                 if not self.tty:
                     self._print(progress_line(name, st, self.iterations, now))
                 continue
@@ -331,6 +335,7 @@ def _train_variant(item) -> dict:
     from .train.evaluate import evaluate
     from .train.trainer import Trainer
 
+    trainer = Trainer(cfg, run, quiet=True)   # loads the scene: not counted as training time
     clock = {"train": 0.0, "last": time.perf_counter(), "sent": 0.0}
 
     def on_step(tr, rec):
@@ -341,7 +346,6 @@ def _train_variant(item) -> dict:
             clock["sent"] = now
         clock["last"] = time.perf_counter()
 
-    trainer = Trainer(cfg, run, quiet=True)
     trainer.fit(resume=_resumable(Path(run), cfg.iterations), on_step=on_step)
     queue.put((name, -1, None))
     return {"name": name, "metrics": evaluate(run), "curve": [], "train_seconds": clock["train"],
@@ -459,12 +463,20 @@ def main(argv=None) -> int:
                         help="start afresh: make the dataset and every run again (default: off, a demo folder "
                              "made with the same settings is reused: its dataset and finished runs are kept)")
         ap.add_argument("--test-size", action="store_true",
-                        help="a seconds-long demo to check that the chain runs (3 views at 48x36, 2 samples, "
-                             f"{TEST_ITERATIONS} steps); its numbers mean nothing (default: off)")
+                        help="a small demo to check that the chain runs, in a few minutes (3 views at 48x36, 2 "
+                             f"samples, {TEST_ITERATIONS} steps); its numbers mean nothing (default: off)")
         args = ap.parse_args(argv)
         overrides = TEST_SIZE if args.test_size else {}
         iterations = args.iterations or (TEST_ITERATIONS if args.test_size else DEMO_ITERATIONS)
-        run(Path(args.out), args.scene, args.seed, iterations, fresh=args.fresh, **overrides)
+        try:
+            run(Path(args.out), args.scene, args.seed, iterations, fresh=args.fresh, **overrides)
+        except KeyboardInterrupt:
+            from .cli.common import Interrupted
+
+            if (Path(args.out) / "demo.json").is_file():   # the dataset is made: the runs can continue
+                raise Interrupted("the same command continues: it reuses the dataset and the finished runs, and "
+                                  "resumes the others from their last checkpoints") from None
+            raise
         return 0
 
     return run_cli(_main, argv)

@@ -22,10 +22,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_progress_line_steps_loss_elapsed_eta():
     now = 1000.0
-    st = {"t0": now - 60, "step": 300, "loss": 0.0123}
-    # 60 s for 300 steps: 0.2 s a step, 1200 steps left -> 240 s
+    st = {"start": now - 70, "t0": now - 60, "step0": 0, "step": 300, "loss": 0.0123}
+    # 60 s for 300 steps since the first report: 0.2 s a step, 1200 steps left -> 240 s; 70 s since the start
     assert demo.progress_line("blur+event", st, 1500, now) == \
-        "blur+event     300/1500 steps ( 20 %)  loss 0.01230  1:00 elapsed, ETA 4:00"
+        "blur+event     300/1500 steps ( 20 %)  loss 0.01230  1:10 elapsed, ETA 4:00"
+    st = {"start": now - 70, "t0": now - 60, "step0": 100, "step": 300, "loss": 0.0123}
+    # resumed at step 100: 200 steps in 60 s, 1200 left -> 360 s
+    assert demo.progress_line("blur+event", st, 1500, now).endswith("1:10 elapsed, ETA 6:00")
     assert demo.progress_line("naive", None, 1500, now) == "naive       waiting"
     assert demo.progress_line("naive", {"done": True, "elapsed": 3725.0}, 1500, now) == \
         "naive       done: 1500/1500 steps in 1:02:05"
@@ -164,3 +167,17 @@ def test_test_size_demo_compiles_once_and_a_second_run_reuses(tmp_path):
     after = {p: p.stat().st_mtime_ns for p in before}
     assert {p for p in before if before[p] != after[p]} <= {tmp_path / "d" / "demo.json",
                                                               tmp_path / "d" / "comparison.json"}
+
+
+def test_ctrl_c_says_the_same_command_continues(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "d"
+
+    def interrupted(path, *a, **k):
+        path.mkdir(parents=True, exist_ok=True)
+        (path / "demo.json").write_text("{}")     # the dataset was made
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo, "run", interrupted)
+    assert demo.main(["--out", str(out)]) == 130
+    assert capsys.readouterr().err == ("error: interrupted; the same command continues: it reuses the dataset and "
+                                       "the finished runs, and resumes the others from their last checkpoints\n")
