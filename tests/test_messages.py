@@ -93,8 +93,14 @@ def test_third_party_warnings_are_worded_ours_are_not(capsys):
     assert err == ["warning: the library numpy warned: 'Degrees of freedom <= 0 for slice.' (RuntimeWarning; "
                    "unexpected: the results may be affected, please report it with the command line)",
                    "warning: scene looks odd"]
-    assert warning_text("x", UserWarning, "/somewhere/ev3dgs/train/trainer.py").startswith(
-        "a library ev3dgs uses warned: 'x'")
+    # a numerical warning raised on a line of ours (numpy's stacklevel) is still numpy's, not a message of ours
+    assert warning_text("x", RuntimeWarning, "/somewhere/ev3dgs/train/trainer.py").startswith(
+        "a library ev3dgs uses warned: 'x' (RuntimeWarning;")
+    # a plain warnings.warn of ours, from the source tree or an installed copy, is printed as it is
+    for where in ("/somewhere/ev3dgs/train/trainer.py", "/venv/lib/python3.11/site-packages/ev3dgs/schema.py"):
+        assert warning_text("x", UserWarning, where) == "x"
+    assert warning_text("x", UserWarning, "/venv/lib/python3.11/site-packages/torch/nn/init.py").startswith(
+        "the library torch warned: 'x' (UserWarning;")
 
 
 # ------------------------------------------------------------------------------------ view

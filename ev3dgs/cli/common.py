@@ -100,11 +100,12 @@ def warning_text(message, category: type[Warning], filename: str = "") -> str:
     from ..errors import Ev3dgsWarning
 
     text = _one_line(message)
-    if issubclass(category, Ev3dgsWarning):
-        return text
     parts = Path(str(filename)).parts
     lib = next((parts[i + 1] for i, d in enumerate(parts[:-1]) if d in ("site-packages", "dist-packages")), None)
     lib = (lib or "").removesuffix(".py")
+    ours = lib == "ev3dgs" or (not lib and "ev3dgs" in parts)
+    if issubclass(category, Ev3dgsWarning) or (category is UserWarning and ours):   # a plain warn() of ours
+        return text
     who = f"the library {lib}" if lib and lib != "ev3dgs" else "a library ev3dgs uses"
     return (f"{who} warned: {text!r} ({category.__name__}; unexpected: the results may be affected, please "
             "report it with the command line)")
