@@ -17,7 +17,12 @@ class InputError(Ev3dgsError):
     """Input arrays have the wrong shape, dtype or values (NaN, negative, unsorted...)."""
 
 
-class SchemaWarning(UserWarning):
+class Ev3dgsWarning(UserWarning):
+    """Base class of every warning this package issues on purpose: the CLIs print it as one `warning:` line;
+    other libraries' warnings are printed as such (cli/common.warning_text)."""
+
+
+class SchemaWarning(Ev3dgsWarning):
     """A scene file follows the schema and can train, but something in it is odd; the message names the path."""
 
 

@@ -24,7 +24,9 @@ class EventFile:
         try:
             self._f = h5py.File(self.path, "r", rdcc_nbytes=CACHE)
         except OSError as e:
-            raise SchemaError(f"{self.path}: not a readable HDF5 file ({e})") from None
+            from .schema import not_a_scene
+
+            raise SchemaError(not_a_scene(self.path, e)) from None
         self._ds = {n: self._f[f"/events/{n}"] for n in ("t", "x", "y", "p")}
         self.n = int(self._ds["t"].shape[0])
 

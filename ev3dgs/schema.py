@@ -350,15 +350,42 @@ def _write_contents(f: h5py.File, s: Scene, config: str, created: str, check=Non
 
 # -------------------------------------------------------------------------------------- validate
 
+_RECORDINGS = {b"#!AER-DAT4.0": "an AEDAT 4.0", b"#!AER-DAT3.1": "an AEDAT 3.1", b"#!AER-DAT2.0": "an AEDAT 2.0"}
+_RECORDING_SUFFIXES = (".aedat4", ".aedat", ".aedat2", ".aedat3")
+
+
+def not_a_scene(path: str | os.PathLike, error: BaseException | str) -> str:
+    """Why `path` cannot be opened as a scene file, in one line: an event-camera recording (by its magic line,
+    or its extension) is named as such with the command that converts it; a run folder, any folder and
+    anything else as what they are."""
+    p = Path(path)
+    if p.is_dir():
+        if (p / "config.json").is_file():
+            return f"{p}: a training run folder, not a scene file (.h5); `ev3dgs info {p}` summarises the run"
+        return f"{p}: a folder, not a scene file (.h5)"
+    try:
+        with open(p, "rb") as f:
+            head = f.read(12)
+    except OSError:
+        head = b""
+    kind = next((k for magic, k in _RECORDINGS.items() if head.startswith(magic)), None)
+    if kind is None and p.suffix.lower() in _RECORDING_SUFFIXES and not head.startswith(b"\x89HDF"):
+        kind = "an AEDAT"
+    if kind is not None:
+        return (f"{p}: {kind} recording, not a scene file (.h5); convert it first with "
+                f"`ev3dgs-ingest davis {p} --out SCENE.h5` (`ev3dgs-ingest info` summarises it as it is)")
+    return f"{p}: not a readable HDF5 file ({error})"
+
+
 @contextmanager
 def _open(path: str | os.PathLike) -> Iterator[h5py.File]:
     p = Path(path)
     if not p.is_file():
-        raise SchemaError(f"{p}: no such file" if not p.exists() else f"{p}: not a file")
+        raise SchemaError(f"{p}: no such file" if not p.exists() else not_a_scene(p, "not a file"))
     try:
         f = h5py.File(p, "r")
     except (OSError, RuntimeError) as e:
-        raise SchemaError(f"{p}: not a readable HDF5 file ({e})") from None
+        raise SchemaError(not_a_scene(p, e)) from None
     try:
         with f:
             yield f

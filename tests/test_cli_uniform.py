@@ -259,7 +259,7 @@ def test_eval_images_are_labelled(run, capsys):
 
 def test_eval_lpips_without_network_is_one_line_naming_the_file(run, tmp_path, monkeypatch, capsys):
     """`eval --lpips alex` fetches the standard weights; with no network the user learns in one line which
-    file to place where, and no metrics.json is written."""
+    file to place where, and metrics.json holds PSNR/SSIM without LPIPS."""
     import socket
     import urllib.error
 
@@ -276,6 +276,9 @@ def test_eval_lpips_without_network_is_one_line_naming_the_file(run, tmp_path, m
     assert exit_code(cli.main, ["eval", str(run), "--lpips", "alex"]) == 2
     err = one_line_error(capsys)
     assert "alexnet-owt-7be5be79.pth" in err and str(tmp_path / "torch" / "hub" / "checkpoints") in err
-    assert not (run / "metrics.json").exists()
+    assert err.startswith("error: LPIPS not computed: ") and "PSNR and SSIM are written to" in err
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["lpips"] is None and m["lpips_failed"] and "psnr" in m["test"]
+    (run / "metrics.json").unlink()
     assert exit_code(cli.main, ["eval", str(run), "--lpips", "alex", "--lpips-weights", "w.pth"]) == 2
     assert "either --lpips" in one_line_error(capsys)

@@ -341,8 +341,13 @@ def test_bad_weight_files_exit_2_with_one_line(run64, alex_file, tmp_path, capsy
         assert cli.main(["eval", str(run64), "--lpips-weights", str(path), "--device", "cpu", "--force"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: "), err
-    after = (run64 / "metrics.json").read_bytes() if (run64 / "metrics.json").exists() else None
-    assert after == before  # a refused weights file leaves the earlier metrics.json alone
+    # the evaluation itself went through: PSNR/SSIM written, LPIPS null with what is missing
+    assert err[0] == (f"error: LPIPS not computed: {tmp_path}: no such LPIPS weights file (or name a network: "
+                      f"alex or vgg); PSNR and SSIM are written to {run64}/metrics.json")
+    m = json.loads((run64 / "metrics.json").read_text())
+    assert m["lpips"] is None and m["lpips_failed"] and "no such LPIPS weights file" in m["lpips_reason"]
+    assert m["test"]["n"] > 0 and np.isfinite(m["test"]["psnr"]) and "lpips" not in m["test"]
+    assert (run64 / "metrics.json").read_bytes() != before
 
 
 def test_eval_refuses_images_too_small_for_the_network(tmp_path_factory, alex_file, capsys):

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from ev3dgs import schema
+from ev3dgs import palette, schema
 from ev3dgs.cli import main as cli
 from ev3dgs.errors import Ev3dgsError, InputError, SchemaError
 from ev3dgs.event_file import EventFile
@@ -120,7 +120,7 @@ def test_event_window_matches_searchsorted(scene_path, a, b):
 def test_event_image_colours(on, off, sat):
     img = data.event_image(np.array([[on]]), np.array([[off]]), saturation=sat)[0, 0].astype(float)
     a, b = min(on / sat, 1), min(off / sat, 1)
-    expect = 255 + a * (data.ON_COLOUR - 255.0) + b * (data.OFF_COLOUR - 255.0)
+    expect = 255 + a * (np.array(palette.ON_RGB) - 255.0) + b * (np.array(palette.OFF_RGB) - 255.0)
     np.testing.assert_allclose(img, np.clip(np.rint(expect), 0, 255), atol=0)
 
 
@@ -128,9 +128,9 @@ def test_event_image_two_colours_and_default_saturation():
     on = np.array([[0, 3, 0, 1000]])
     off = np.array([[0, 0, 3, 0]])
     img = data.event_image(on, off)            # 99th percentile of (3, 1000, 3) is about 980
-    np.testing.assert_array_equal(img[0, 0], data.BACKGROUND)
-    np.testing.assert_array_equal(img[0, 3], data.ON_COLOUR)
-    assert img[0, 1, 2] > img[0, 1, 0] and img[0, 2, 0] > img[0, 2, 2]   # ON bluish, OFF reddish
+    np.testing.assert_array_equal(img[0, 0], palette.BACKGROUND_RGB)
+    np.testing.assert_array_equal(img[0, 3], palette.ON_RGB)
+    assert img[0, 1, 0] > img[0, 1, 2] and img[0, 2, 2] > img[0, 2, 0]   # ON reddish, OFF bluish
     assert data.accumulation_time(np.array([100, 300]), 0.25) == 150
     assert data.accumulation_time(np.array([100, 300]), 2.0) == 300
 

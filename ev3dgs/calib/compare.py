@@ -183,21 +183,34 @@ def compare(rec: Recording, cfg, dark: float = 0.0, seed: int = 0, sim: Events |
 
 def figure(res: dict, path, title: str = "") -> None:
     """One figure, real vs simulated: net count maps, per-pixel counts, rate over time, IEI histograms,
-    background rates."""
+    background rates (`draw`), written to `path`."""
+    import matplotlib.pyplot as plt
+
+    fig = draw(res, title)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def draw(res: dict, title: str = ""):
+    """The matplotlib Figure (Agg) `figure` writes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from .. import palette   # the polarity colours of every figure: ON red, OFF blue
 
     H, W = res["height"], res["width"]
     net_r, net_s, keep, blk_r, blk_s = res["_maps"]
     fig, ax = plt.subplots(2, 3, figsize=(15, 8.5), constrained_layout=True)
     lim = max(1.0, float(np.percentile(np.abs(net_r[keep]), 99.5)))
     for a, m, name in ((ax[0, 0], net_r, "real"), (ax[0, 1], net_s, "simulated")):
-        im = a.imshow(np.where(keep, m, 0).reshape(H, W), cmap="bwr", vmin=-lim, vmax=lim)
+        im = a.imshow(np.where(keep, m, 0).reshape(H, W), cmap=palette.net_colormap(), vmin=-lim, vmax=lim,
+                      interpolation="nearest")
         a.set_title(f"{name}: ON - OFF events per pixel")
         a.axis("off")
-    fig.colorbar(im, ax=ax[0, 1], shrink=0.8)
+    bar = fig.colorbar(im, ax=ax[0, 1], shrink=0.8)
+    bar.set_label(f"ON - OFF events ({palette.ON_NAME}: more ON, {palette.OFF_NAME}: more OFF)")
     cm = res["count_maps"]["all"]
     a = ax[0, 2]
     a.loglog(blk_r + 1, blk_s + 1, ".", ms=3, alpha=0.5)
@@ -206,7 +219,7 @@ def figure(res: dict, path, title: str = "") -> None:
     a.set_xlabel(f"real events + 1 per {BLOCK}x{BLOCK} block")
     a.set_ylabel("simulated events + 1")
     cpp, cb = cm["corr_pair_pixel"], cm["corr_pair_block8"]
-    a.set_title("count maps per frame pair: r = " + (f"{cpp:.2f} (pixels), " if cpp is not None else "- , ") +
+    a.set_title("count maps per frame pair:\nr = " + (f"{cpp:.2f} (pixels), " if cpp is not None else "- , ") +
                 (f"{cb:.2f} ({BLOCK}x{BLOCK} blocks)" if cb is not None else "-"), fontsize=10)
     rt = res["rate_over_time"]
     a = ax[1, 0]
@@ -240,9 +253,8 @@ def figure(res: dict, path, title: str = "") -> None:
     a.set_ylabel("Hz per static pixel")
     a.set_title(f"background activity ({bg['static_pixels']} static pixels)")
     a.legend()
-    fig.suptitle(title or res["recording"], fontsize=10)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    palette.fit_suptitle(fig, title or res["recording"], fontsize=10)
+    return fig
 
 
 def public(res: dict) -> dict:

@@ -181,6 +181,20 @@ def invert_leak_pixels(measured: float, reset_hz: np.ndarray) -> float:
     return float(brentq(f, lo, hi, xtol=1e-6 * measured))
 
 
+def bootstrap_se(samples: np.ndarray) -> np.ndarray:
+    """Per column of `samples` (bootstrap replicates x quantities), the sample standard deviation of its finite
+    values; NaN where fewer than two are finite (a quantity the fit could not estimate: numpy's nanstd would
+    warn "Degrees of freedom <= 0 for slice" there)."""
+    samples = np.asarray(samples, np.float64)
+    samples = samples[:, None] if samples.ndim == 1 else samples
+    out = np.full(samples.shape[1], np.nan)
+    for j in range(samples.shape[1]):
+        v = samples[np.isfinite(samples[:, j]), j]
+        if len(v) > 1:
+            out[j] = v.std(ddof=1)
+    return out
+
+
 def fit_noise(rec: Recording, curve: tuple[float, float], c_on: float, c_off: float, boot: int = 200,
               seed: int = 0) -> NoiseFit:
     dark = curve[0]
@@ -220,7 +234,7 @@ def fit_noise(rec: Recording, curve: tuple[float, float], c_on: float, c_off: fl
     full = estimate(np.arange(ns))
     rng = np.random.default_rng(seed)
     bs = np.array([estimate(rng.integers(0, ns, ns)) for _ in range(boot)]).reshape(-1, 5)
-    se = np.nanstd(bs, 0, ddof=1) if len(bs) > 1 else np.full(5, np.nan)
+    se = bootstrap_se(bs)
     on_v = Value(full[0], se[0], f"{ns} static pixels over {T:.2f} s")
     off_v = Value(full[1], se[1], f"{ns} static pixels over {T:.2f} s")
     if full[2] > 2 * se[2]:

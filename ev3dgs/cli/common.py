@@ -11,9 +11,31 @@ from ..errors import Ev3dgsError, raised_in_h5py
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # argparse's usage dump -> our one line, exit 2
-        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
+    def error(self, message: str, prog: str | None = None):  # argparse's usage dump -> our one line, exit 2
+        print(f"error: {message} (see {prog or self.prog} --help)", file=sys.stderr)
         raise SystemExit(2)
+
+    def parse_args(self, args=None, namespace=None):
+        """argparse's, but an unknown option points to the help of the sub-command it was given to
+        (`ev3dgs train --help`), where the options are listed, not to the program's."""
+        ns, rest = self.parse_known_args(args, namespace)
+        if rest:
+            self.error(f"unrecognized arguments: {' '.join(rest)}", _subcommand_prog(self, ns))
+        return ns
+
+
+def _subcommand_prog(p: argparse.ArgumentParser, ns: argparse.Namespace) -> str | None:
+    """The prog ("ev3dgs train") of the sub-command `ns` was parsed for, or None."""
+    for action in p._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            sub = action.choices.get(getattr(ns, action.dest or "", None) or "")
+            if sub is not None:
+                return _subcommand_prog(sub, ns) or sub.prog
+    return None
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGINT) with what the user can do next: `run` prints `error: interrupted; <message>`."""
 
 
 def finite_float(text: str) -> float:
@@ -47,11 +69,19 @@ def subparsers(p: argparse.ArgumentParser):
     return p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
 
-def dispatch(build_parser: Callable[[], argparse.ArgumentParser], argv: list[str] | None = None) -> int:
-    """Parse argv with the CLI's parser and call the chosen sub-command (its `func`), with one-line errors."""
+def dispatch(build_parser: Callable[[], argparse.ArgumentParser], argv: list[str] | None = None,
+             on_interrupt: Callable[[argparse.Namespace, list[str]], str | None] | None = None) -> int:
+    """Parse argv with the CLI's parser and call the chosen sub-command (its `func`), with one-line errors.
+    `on_interrupt(args, argv)`: what to tell the user after Ctrl-C (e.g. the command that resumes), or None."""
     def _main(argv):
         args = build_parser().parse_args(argv)
-        return args.func(args)
+        try:
+            return args.func(args)
+        except KeyboardInterrupt:
+            hint = on_interrupt(args, list(sys.argv[1:] if argv is None else argv)) if on_interrupt else None
+            if hint:
+                raise Interrupted(hint) from None
+            raise
 
     return run(_main, argv)
 
@@ -62,6 +92,23 @@ _EXTRAS = {"gsplat": "pip install ev3dgs[cuda] (gsplat, for --backend cuda)",
 
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
+
+
+def warning_text(message, category: type[Warning], filename: str = "") -> str:
+    """One line for a warning: ours (Ev3dgsWarning) as it is; any other library's (numpy, torch...) named as
+    such, since it was not meant for the user and says nothing about what to do."""
+    from ..errors import Ev3dgsWarning
+
+    text = _one_line(message)
+    parts = Path(str(filename)).parts
+    lib = next((parts[i + 1] for i, d in enumerate(parts[:-1]) if d in ("site-packages", "dist-packages")), None)
+    lib = (lib or "").removesuffix(".py")
+    ours = lib == "ev3dgs" or (not lib and "ev3dgs" in parts)
+    if issubclass(category, Ev3dgsWarning) or (category is UserWarning and ours):   # a plain warn() of ours
+        return text
+    who = f"the library {lib}" if lib and lib != "ev3dgs" else "a library ev3dgs uses"
+    return (f"{who} warned: {text!r} ({category.__name__}; unexpected: the results may be affected, please "
+            "report it with the command line)")
 
 
 def error_message(e: BaseException) -> str | None:
@@ -93,14 +140,14 @@ def run(main: Callable[[list[str] | None], int], argv: list[str] | None = None) 
 
     def _one_line_warning(message, category, filename, lineno, file=None, line=None):
         # our warnings (damaged packets, odd scenes) are for users: one line each, no source location
-        print(f"warning: {_one_line(message)}", file=file or sys.stderr)
+        print(f"warning: {warning_text(message, category, filename)}", file=file or sys.stderr)
 
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning
             return main(argv) or 0
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        print(f"error: interrupted{'; ' + _one_line(e) if isinstance(e, Interrupted) else ''}", file=sys.stderr)
         return 130
     except Exception as e:
         message = error_message(e)

@@ -1,6 +1,7 @@
-"""Summaries of a scene file and of a recording (shared by `ev3dgs info` and `ev3dgs-ingest info`).
+"""Summaries of a scene file, a training run and a recording (`ev3dgs info`, `ev3dgs-ingest info`).
 
-`scene_summary` / `describe`: a scene file (.h5) as a dict / as one screen of text. `recording_text` renders a
+`scene_summary` / `describe`: a scene file (.h5) as a dict / as one screen of text; `run_summary` /
+`describe_run`: a run folder written by `ev3dgs train` the same way. `recording_text` renders a
 recording reader's info dict as aligned "key: value" lines with its streams one per line; `jsonable` turns any of
 these dicts into plain JSON values (numpy scalars and arrays, tuples, paths)."""
 from __future__ import annotations
@@ -73,6 +74,147 @@ def describe(path: str) -> str:
         if label in d:
             lines.append(f"{label:8s} {d[label]}")
     lines += [f"warning  {w}" for w in d["warnings"]]
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------ runs
+
+_METRIC_GROUPS = (("novel_view", "novel views"), ("novel_view_unaligned", "novel views, unaligned"),
+                  ("blur_view", "deblurred training views"), ("blur_view_given_poses", "deblurred, at given poses"),
+                  ("blurry_input", "blurry input (baseline)"))
+
+
+def _json(path: Path):
+    """The JSON in `path`, or None when it is missing; a damaged file is a one-line InputError."""
+    import json
+
+    from ..errors import InputError
+
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"{path}: not readable JSON ({e})") from None
+
+
+def _last_log_record(path: Path) -> dict | None:
+    import json
+
+    last = None
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(lines):
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue   # a torn last line (a run killed mid-write)
+        if isinstance(rec, dict) and isinstance(rec.get("step"), int):
+            last = rec
+            break
+    return last
+
+
+def run_summary(run_dir: str | Path) -> dict:
+    """A training run folder as a dict of plain values: its settings (those that differ from the defaults),
+    its progress (steps logged, the last loss, Gaussians), its scene (recorded and where it is found now), its
+    metrics when it was evaluated, and which of the run's files are there."""
+    import dataclasses
+
+    from ..errors import InputError
+    from ..train.config import RECORD_KEYS, TrainConfig
+
+    run = Path(run_dir)
+    config = _json(run / "config.json")
+    if not isinstance(config, dict) or not isinstance(config.get("scene"), str):
+        raise InputError(f"{run}: not a training run (no config.json naming a scene; `ev3dgs info` takes a scene "
+                         "file or a run folder written by `ev3dgs train`)")
+    defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)
+                if f.default is not dataclasses.MISSING}
+    settings = {k: v for k, v in config.items()
+                if k not in RECORD_KEYS and k != "scene" and k in defaults and v != defaults[k]}
+    unknown = sorted(k for k in config if k not in defaults and k not in RECORD_KEYS and k != "scene")
+    try:
+        variant = TrainConfig.load(run / "config.json").variant
+    except Exception:  # noqa: BLE001 - an old or edited config: the summary still shows what it holds
+        variant = None
+    last = _last_log_record(run / "log.jsonl")
+    record = config.get("scene_file") if isinstance(config.get("scene_file"), dict) else {}
+    try:
+        from ..train.run_scene import resolve_scene
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            found = str(resolve_scene(run, config))
+        scene_note = "; ".join(str(w.message) for w in caught) or None
+    except InputError as e:
+        found, scene_note = None, str(e)
+    metrics = _json(run / "metrics.json")
+    files = [n for n in ("model.pt", "ckpt.pt", "log.jsonl", "metrics.json", "trajectory.npz", "training.png",
+                         "response.json") if (run / n).is_file()]
+    evals = len(list((run / "eval").glob("*.png"))) if (run / "eval").is_dir() else 0
+    out = {"path": str(run), "variant": variant, "iterations": config.get("iterations"),
+           "steps_logged": None if last is None else last["step"],
+           "finished": ((run / "model.pt").is_file() and last is not None
+                        and last["step"] == config.get("iterations")),
+           "last": None if last is None else {k: last.get(k) for k in ("loss", "psnr_blurry", "gaussians", "seconds")},
+           "settings": settings, "unknown_settings": unknown,
+           "scene": {"recorded": config["scene"], "name": record.get("name"), "size": record.get("size"),
+                     "created": record.get("created"), "found": found, "note": scene_note},
+           "metrics": None, "files": files, "eval_images": evals}
+    if isinstance(metrics, dict):
+        out["metrics"] = {key: {k: metrics[key].get(k) for k in ("psnr", "ssim", "lpips", "n")}
+                          for key, _ in _METRIC_GROUPS if isinstance(metrics.get(key), dict)}
+        out["metrics_lpips"] = metrics.get("lpips_reason") if metrics.get("lpips") is None else (
+            f"LPIPS v{metrics['lpips'].get('version')} ({metrics['lpips'].get('net')})")
+    return jsonable(out)
+
+
+def describe_run(run_dir: str | Path) -> str:
+    """`run_summary` as one screen of text."""
+    d = run_summary(run_dir)
+    it = d["iterations"]
+    if d["steps_logged"] is None:
+        progress = "no step logged yet"
+    else:
+        progress = f"{d['steps_logged']} of {it} steps" + (" (finished: model.pt)" if d["finished"] else
+                                                          " (model.pt)" if "model.pt" in d["files"] else
+                                                          " (unfinished: ckpt.pt, continue with --resume)"
+                                                          if "ckpt.pt" in d["files"] else " (no checkpoint)")
+        last = d["last"]
+        bits = [f"loss {last['loss']:.5f}" if isinstance(last.get("loss"), (int, float)) else None,
+                f"PSNR vs blurry {last['psnr_blurry']:.2f} dB" if isinstance(last.get("psnr_blurry"),
+                                                                             (int, float)) else None,
+                f"{last['gaussians']} Gaussians" if last.get("gaussians") is not None else None,
+                f"{last['seconds']:.0f} s" if isinstance(last.get("seconds"), (int, float)) else None]
+        progress += "; last step: " + ", ".join(b for b in bits if b)
+    lines = [f"{d['path']}: training run, variant {d['variant'] or 'unknown'}", f"progress {progress}"]
+    sc = d["scene"]
+    ident = ", ".join(x for x in (f"name {sc['name']!r}" if sc["name"] else None,
+                                  f"{sc['size']:,} bytes" if isinstance(sc["size"], int) else None,
+                                  f"created {sc['created']}" if sc["created"] else None) if x)
+    lines.append(f"scene    {sc['recorded']}" + (f" ({ident})" if ident else ""))
+    if sc["found"] is None:
+        lines.append(f"         not found: {sc['note']}")
+    elif sc["found"] != sc["recorded"] or sc["note"]:
+        lines.append(f"         found at {sc['found']}" + (f" ({sc['note']})" if sc["note"] else ""))
+    shown = ", ".join(f"{k} {v}" for k, v in d["settings"].items())
+    lines.append(f"settings {shown or 'all defaults'}"
+                 + (f"; unknown keys {', '.join(d['unknown_settings'])}" if d["unknown_settings"] else ""))
+    if d["metrics"] is None:
+        lines.append("metrics  not evaluated (ev3dgs eval RUN writes metrics.json)")
+    else:
+        labels = dict(_METRIC_GROUPS)
+        for key, m in d["metrics"].items():
+            lp = f"  LPIPS {m['lpips']:.4f}" if isinstance(m.get("lpips"), (int, float)) else ""
+            lines.append(f"metrics  {labels[key]:26s} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}{lp}  "
+                         f"({m['n']} views)")
+        if d.get("metrics_lpips"):
+            lines.append(f"         {d['metrics_lpips']}")
+    files = ", ".join(d["files"]) + (f", eval/ ({d['eval_images']} PNGs)" if d["eval_images"] else "")
+    lines.append(f"files    config.json, {files}" if files else "files    config.json")
     return "\n".join(lines)
 
 

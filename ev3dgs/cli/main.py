@@ -152,7 +152,7 @@ def _eval(args) -> int:
 
         raise InputError("give either --lpips NET (standard weights, fetched once) or --lpips-weights FILE")
     m = evaluate(args.run, lpips_weights=args.lpips or args.lpips_weights, device=args.device, scene=args.scene,
-                 force=args.force)
+                 force=args.force, other_scene=args.other_scene)
     for key, label in (("test", "novel views"), ("novel_view_unaligned", "novel views, unaligned"),
                        ("train_sharp", "deblurred training views"),
                        ("blur_view_given_poses", "deblurred, at given poses"),
@@ -162,9 +162,14 @@ def _eval(args) -> int:
             _say(args, f"{label:26s} PSNR {m[key]['psnr']:6.2f} dB  SSIM {m[key]['ssim']:.4f}{lp}  "
                        f"({m[key]['n']} views)")
     lp = m["lpips"]
-    _say(args, f"LPIPS: {m['lpips_reason']}" if lp is None else f"LPIPS v{lp['version']} ({lp['net']}, "
-                                                                 f"{lp['weights']})")
+    if not m.get("lpips_failed"):
+        _say(args, f"LPIPS: {m['lpips_reason']}" if lp is None else f"LPIPS v{lp['version']} ({lp['net']}, "
+                                                                     f"{lp['weights']})")
     _say(args, f"-> {args.run}/metrics.json, {args.run}/eval/*.png")
+    if m.get("lpips_failed"):  # asked for and not computed: the scores above are written, the exit code says
+        from ..errors import Ev3dgsError
+
+        raise Ev3dgsError(f"{m['lpips_reason']}; PSNR and SSIM are written to {args.run}/metrics.json")
     return 0
 
 
@@ -200,7 +205,7 @@ def _render(args) -> int:
         check_output_dir(args.out, force=args.force)
     else:
         check_output_file(args.out, make_parents=True, force=args.force)
-    cfg, model = load_run(args.run, scene=args.scene)
+    cfg, model = load_run(args.run, scene=args.scene, other_scene=args.other_scene)
     sc = schema.read(cfg.scene)
     _need_backend(cfg.backend)
     W, H = sc.camera.width, sc.camera.height
@@ -245,9 +250,11 @@ def _export(args) -> int:
 
 
 def _info(args) -> int:
-    from .info import describe
+    from pathlib import Path
 
-    print(describe(args.file))
+    from .info import describe, describe_run
+
+    print(describe_run(args.file) if Path(args.file).is_dir() else describe(args.file))
     return 0
 
 
@@ -259,6 +266,12 @@ def _validate(args) -> int:
         print(f"warning: {note}", file=sys.stderr)
     _say(args, f"{args.file}: valid")
     return 0
+
+
+def _add_other_scene(p, verb: str) -> None:
+    p.add_argument("--other-scene", action="store_true",
+                   help=f"with --scene: {verb} on a scene file that is not the one the run was trained on (its name, "
+                        "size or creation time differs; default: off, such a file is refused)")
 
 
 def build_parser():
@@ -426,6 +439,7 @@ def build_parser():
     e.add_argument("--scene", metavar="FILE",
                    help="the scene file to evaluate on (default: the one the run records, looked for relative to "
                         "the run folder, at its absolute path, then by name beside the run folder and its parents)")
+    _add_other_scene(e, "evaluate")
     add_output_options(e, force_help="evaluate a run that has metrics.json already, replacing it and the eval "
                                      "images (default: off, refused)")
     e.set_defaults(func=_eval)
@@ -442,6 +456,7 @@ def build_parser():
                         "default: the scene's camera size)")
     r.add_argument("--scene", metavar="FILE",
                    help="the scene file whose cameras and background are used (default: the one the run records)")
+    _add_other_scene(r, "render")
     r.add_argument("--given-poses", action="store_true",
                    help="for a --refine-poses run, build the orbit around the scene's given poses instead of the "
                         "refined trajectory (trajectory.npz) the model was trained in (default: off)")
@@ -454,8 +469,9 @@ def build_parser():
     x.add_argument("--ply", dest="out", help=argparse.SUPPRESS)  # the option's earlier name
     add_output_options(x)
     x.set_defaults(func=_export)
-    i = sub.add_parser("info", help="summarise a scene file (.h5)")
-    i.add_argument("file", help="scene file (.h5)")
+    i = sub.add_parser("info", help="summarise a scene file (.h5) or a training run folder")
+    i.add_argument("file", help="scene file (.h5), or a run folder written by `ev3dgs train` (its settings, "
+                                "progress, scene and metrics)")
     i.set_defaults(func=_info)
     v = sub.add_parser("validate", help="check a scene file against the schema")
     v.add_argument("file", help="scene file (.h5)")
@@ -475,8 +491,23 @@ def build_parser():
     return p
 
 
+def _interrupt_hint(args, argv: list[str]) -> str | None:
+    """After Ctrl-C in `ev3dgs train`: the exact command that continues the run from its last checkpoint."""
+    if getattr(args, "command", None) != "train":
+        return None
+    import shlex
+    from pathlib import Path
+
+    ckpt = Path(args.out) / "ckpt.pt"
+    if not ckpt.is_file():
+        return (f"no checkpoint was written yet (one every --checkpoint-every {args.checkpoint_every} steps), so "
+                "there is nothing to resume: run the same command again to start over")
+    again = [a for a in argv if a != "--force"] + ([] if "--resume" in argv else ["--resume"])
+    return f"the run keeps its last checkpoint, {ckpt}; continue it with: {shlex.join(['ev3dgs', *again])}"
+
+
 def main(argv: list[str] | None = None) -> int:
-    return dispatch(build_parser, argv)
+    return dispatch(build_parser, argv, on_interrupt=_interrupt_hint)
 
 
 if __name__ == "__main__":

@@ -14,14 +14,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import Ev3dgsError
+from ..errors import Ev3dgsError, Ev3dgsWarning
 
 
 class AedatError(Ev3dgsError):
     """A corrupt or unsupported recording; the message names the byte offset where reading failed."""
 
 
-class AedatWarning(UserWarning):
+class AedatWarning(Ev3dgsWarning):
     """A recoverable problem in a recording (truncated tail, damaged FileDataTable, skipped packet, dropped
     values that the file contradicts)."""
 

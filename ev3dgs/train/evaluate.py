@@ -11,7 +11,9 @@ Evaluation protocol (E2NeRF / EvaGaussians), metrics.json keys:
 Each is {"psnr", "ssim", "n", "psnr_per_view"}, plus "lpips" (mean) and "lpips_per_view" when LPIPS is asked for
 (a network name, "alex" or "vgg", whose standard weights are fetched into torch's hub cache, or a weights file:
 ev3dgs/train/lpips.py); the top-level "lpips" then names the network ({"net", "version", "weights",
-"sha256", "min_size"}), else it is null and "lpips_reason" says why.
+"sha256", "min_size"}), else it is null and "lpips_reason" says why. LPIPS that was asked for but could not be
+computed (weights missing or unreadable, no network for the first fetch, images too small) leaves the PSNR/SSIM
+scores written, "lpips_failed": true and the reason.
 "variant" is naive / blur-only / blur+event / oracle (TrainConfig.variant). The old keys "test" and
 "train_sharp" are kept as aliases of all /test views and of the /train/sharp blur views.
 
@@ -43,9 +45,11 @@ from .metrics import lpips_unavailable_reason, psnr, ssim_metric
 from .trainer import resolve_device
 
 
-def load_run(run_dir: str | Path, device="cpu", scene: str | Path | None = None, find_scene: bool = True):
+def load_run(run_dir: str | Path, device="cpu", scene: str | Path | None = None, find_scene: bool = True,
+             other_scene: bool = False):
     """(TrainConfig, GaussianModel) of a finished run. The config's ``scene`` is the scene file found by
-    run_scene.resolve_scene (``scene``: the --scene override), an absolute path: any working folder works,
+    run_scene.resolve_scene (``scene``: the --scene override, refused when it is not the run's scene unless
+    ``other_scene``), an absolute path: any working folder works,
     and so does a run moved together with its scene. ``find_scene=False`` (the model alone is needed, e.g.
     export): the recorded path is kept as it is and a missing scene is no error."""
     import dataclasses
@@ -57,7 +61,7 @@ def load_run(run_dir: str | Path, device="cpu", scene: str | Path | None = None,
         raise InputError(f"{run}: not a finished training run (config.json and model.pt expected)")
     cfg = TrainConfig.load(run / "config.json")
     if find_scene or scene is not None:
-        cfg = dataclasses.replace(cfg, scene=str(resolve_run_scene(run, scene)))
+        cfg = dataclasses.replace(cfg, scene=str(resolve_run_scene(run, scene, other_scene)))
     try:
         payload = torch.load(run / "model.pt", map_location=device, weights_only=False)
     except (OSError, RuntimeError, EOFError) as e:
@@ -158,13 +162,15 @@ def _png(path: Path, images, labels) -> None:
 
 
 def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str = "auto",
-             write_images: bool = True, scene: str | Path | None = None, force: bool = True) -> dict:
+             write_images: bool = True, scene: str | Path | None = None, force: bool = True,
+             other_scene: bool = False) -> dict:
     """Score the run in `run_dir` (see the module doc) -> RUN/metrics.json and RUN/eval/*.png. `scene`: the
-    scene file instead of the one the run records; without `force` an existing metrics.json is refused
-    (OutputError). The earlier evaluation's images are removed."""
+    scene file instead of the one the run records (one that is not the run's scene, by name, size or
+    fingerprint, only with `other_scene`); without `force` an existing metrics.json is refused (OutputError).
+    The earlier evaluation's images are removed."""
     run = Path(run_dir)
     dev = resolve_device(device)
-    cfg, model = load_run(run, dev, scene=scene)
+    cfg, model = load_run(run, dev, scene=scene, other_scene=other_scene)
     import errno
 
     from ..outputs import OutputError, check_output_dir, remove_stale_temps
@@ -181,13 +187,21 @@ def evaluate(run_dir: str | Path, lpips_weights: str | None = None, device: str 
     K = torch.as_tensor(sc.camera.K, dtype=model.dtype, device=dev)
     bg = torch.as_tensor(sc.camera.background if sc.camera.background is not None else (0, 0, 0),
                          dtype=model.dtype, device=dev)
-    lp = None
+    lp, lpips_failed = None, None
     if lpips_weights is not None:
-        lp = load_lpips(lpips_weights, dev)  # a bad file or too small images fail here, before any rendering
-        lp.check_size(W, H)
+        # a missing or bad weights file, no network for the fetch, too small images: found before any rendering,
+        # and PSNR/SSIM are still scored; "lpips_reason" says what is missing (the CLI then exits 2)
+        try:
+            lp = load_lpips(lpips_weights, dev)
+            lp.check_size(W, H)
+        except InputError as e:
+            lp, lpips_failed = None, f"LPIPS not computed: {e}"
     metrics = {"run": str(run), "scene": cfg.scene,  # the resolved, absolute path
                "variant": cfg.variant, "seed": cfg.seed, "iterations": cfg.iterations,
-               "lpips": lp.info if lp else None, "lpips_reason": None if lp else lpips_unavailable_reason(None)}
+               "lpips": lp.info if lp else None,
+               "lpips_reason": None if lp else lpips_failed or lpips_unavailable_reason(None)}
+    if lpips_failed:
+        metrics["lpips_failed"] = True
     out_dir = run / "eval"
     clear_eval_images(run)  # the images of an earlier evaluation (other views, other model)
     if write_images:

@@ -103,8 +103,8 @@ def min_size(net: str) -> int:
     return n
 
 
-FILE_HINT = ("expected one torch file holding lpips.LPIPS(net='alex', version='0.1').state_dict() (see "
-             "ev3dgs/train/lpips.py for the one-line recipe)")
+FILE_HINT = ("expected one torch file holding lpips.LPIPS(net='alex', version='0.1').state_dict() (how to "
+             "make one: \"LPIPS\" in the ev3dgs eval docs, docs/commands/ev3dgs-eval.md)")
 
 
 def _refuse(path, why: str, hint: str = FILE_HINT):

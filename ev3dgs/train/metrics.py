@@ -47,5 +47,6 @@ def lpips_unavailable_reason(weights_path) -> str | None:
         return None
     where = f" ({weights_path!s} is not a readable file)" if weights_path else ""
     return ("LPIPS not computed: pass --lpips alex (or vgg) to use the reference weights (downloaded once into "
-            "torch's hub cache), or --lpips-weights with a local weights file (recipe in ev3dgs/train/lpips.py)"
+            "torch's hub cache), or --lpips-weights with a local weights file (see \"LPIPS\" in the ev3dgs eval "
+            "docs, docs/commands/ev3dgs-eval.md)"
             f"{where}")

@@ -6,7 +6,8 @@ folder, the absolute path, the file name, its size and a cheap fingerprint (the 
 folder; the absolute path; the old runs' ``scene`` as given (relative to where training started: the current
 folder, then the run folder and its parents); the file name next to the run folder and in its parents. A
 candidate whose size or fingerprint differs from the recorded one is used only when nothing else matches
-(with a warning)."""
+(with a warning). A ``--scene`` override whose name, size or fingerprint differs from the recorded scene's is
+refused (``scene_difference`` names what differs) unless ``other_scene`` is given (``--other-scene``)."""
 from __future__ import annotations
 
 import json
@@ -14,9 +15,10 @@ import os
 import warnings
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import Ev3dgsWarning, InputError
 
-__all__ = ["scene_record", "scene_fingerprint_of", "same_scene_file", "resolve_scene", "resolve_run_scene"]
+__all__ = ["scene_record", "scene_fingerprint_of", "same_scene_file", "scene_difference", "resolve_scene",
+           "resolve_run_scene"]
 
 
 def scene_fingerprint_of(path: str | os.PathLike) -> dict | None:
@@ -61,6 +63,25 @@ def _matches(record: dict | None, path: Path) -> bool:
     return all(record.get(k) is None or fp[k] == record.get(k) for k in ("size", "name", "created"))
 
 
+def scene_difference(record: dict | None, path: str | os.PathLike) -> str | None:
+    """What tells the scene file at `path` from the one a run recorded (config.json's ``scene_file``): its
+    ``name`` attribute, its size, its creation time (the fingerprint), as one phrase; None when they agree or
+    the record holds nothing to compare (an old run)."""
+    if not record or all(record.get(k) is None for k in ("size", "name", "created")):
+        return None
+    fp = scene_fingerprint_of(path)
+    if fp is None:
+        return "it cannot be read"
+    parts = []
+    if record.get("name") is not None and fp["name"] != record["name"]:
+        parts.append(f"its name is {fp['name']!r}, the run's scene is {record['name']!r}")
+    if record.get("size") is not None and fp["size"] != record["size"]:
+        parts.append(f"its size is {fp['size']:,} bytes, the run's scene has {record['size']:,}")
+    if record.get("created") is not None and fp["created"] != record["created"]:
+        parts.append(f"it was created {fp['created']}, the run's scene {record['created']}")
+    return "; ".join(parts) or None
+
+
 def same_scene_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     """Two paths to one scene: the same file, or two copies with the same size, name and creation time."""
     pa, pb = Path(a), Path(b)
@@ -100,16 +121,28 @@ def _candidates(run: Path, config: dict) -> list[Path]:
     return unique
 
 
-def resolve_scene(run_dir: str | os.PathLike, config: dict, override: str | os.PathLike | None = None) -> Path:
+def resolve_scene(run_dir: str | os.PathLike, config: dict, override: str | os.PathLike | None = None,
+                  other_scene: bool = False) -> Path:
     """The scene file of the run in `run_dir` whose config.json holds `config` (a dict); see the module doc.
-    InputError (one line, naming where it looked) when none is found."""
+    InputError (one line, naming where it looked) when none is found, and when the `override` is not the
+    scene the run was trained on (unless `other_scene`)."""
     run = Path(run_dir)
+    record = config.get("scene_file") if isinstance(config.get("scene_file"), dict) else None
     if override is not None:
         p = Path(override)
         if not p.is_file():
             raise InputError(f"--scene {override}: no such file")
+        import h5py
+
+        if not h5py.is_hdf5(p):
+            from ..schema import not_a_scene
+
+            raise InputError(not_a_scene(p, "not HDF5"))
+        differs = None if other_scene else scene_difference(record, p)
+        if differs is not None:
+            raise InputError(f"--scene {override} is not the scene the run {run} was trained on ({differs}); "
+                             "pass --other-scene to use it anyway")
         return Path(os.path.abspath(p))
-    record = config.get("scene_file") if isinstance(config.get("scene_file"), dict) else None
     looked = _candidates(run, config)
     existing = [p for p in looked if p.is_file()]
     for p in existing:
@@ -117,7 +150,8 @@ def resolve_scene(run_dir: str | os.PathLike, config: dict, override: str | os.P
             return Path(os.path.abspath(p))
     if existing:
         warnings.warn(f"{existing[0]} is not the scene file the run {run} was trained on (its size or "
-                      "creation time differs); using it anyway (give --scene FILE to choose another)", stacklevel=2)
+                      "creation time differs); using it anyway (give --scene FILE to choose another)", Ev3dgsWarning,
+                      stacklevel=2)
         return Path(os.path.abspath(existing[0]))
     if not looked:
         raise InputError(f"{run / 'config.json'}: names no scene file (give --scene FILE)")
@@ -126,7 +160,8 @@ def resolve_scene(run_dir: str | os.PathLike, config: dict, override: str | os.P
                      "give --scene FILE")
 
 
-def resolve_run_scene(run_dir: str | os.PathLike, override: str | os.PathLike | None = None) -> Path:
+def resolve_run_scene(run_dir: str | os.PathLike, override: str | os.PathLike | None = None,
+                      other_scene: bool = False) -> Path:
     """resolve_scene with the run's config.json read from `run_dir`."""
     path = Path(run_dir) / "config.json"
     try:
@@ -135,4 +170,4 @@ def resolve_run_scene(run_dir: str | os.PathLike, override: str | os.PathLike | 
         raise InputError(f"{path}: not readable ({e})") from None
     if not isinstance(config, dict):
         raise InputError(f"{path}: not a run's config (a JSON object expected)")
-    return resolve_scene(run_dir, config, override)
+    return resolve_scene(run_dir, config, override, other_scene)

@@ -34,6 +34,9 @@ def add_parser(sub) -> None:
     v.add_argument("--scene", metavar="FILE",
                    help="for a run folder: the scene file to show it with (default: the one the run records, "
                         "looked for relative to the run folder, at its absolute path, then by name beside it)")
+    v.add_argument("--other-scene", action="store_true",
+                   help="with --scene: show the run with a scene file that is not the one it was trained on (its "
+                        "name, size or creation time differs; default: off, such a file is refused)")
     v.add_argument("--rows", type=int, default=4,
                    help="training views (rows) in the --out contact sheet, spread over all views "
                         "(default %(default)s)")
@@ -80,9 +83,10 @@ def run(args) -> int:
             raise InputError(f"--out {args.out}: view writes a PNG figure; give a file name ending in .png")
         check_output_file(args.out, 2 << 20, make_parents=True, force=args.force)
     if Path(args.path).is_dir():
-        content = data.load_run_content(args.path, scene=args.scene)
-    elif args.scene is not None:
-        raise InputError("--scene is for a run folder; a scene file is shown as it is")
+        content = data.load_run_content(args.path, scene=args.scene, other_scene=args.other_scene)
+    elif args.scene is not None or args.other_scene:
+        raise InputError(f"{'--scene' if args.scene is not None else '--other-scene'} is for a run folder; a "
+                         "scene file is shown as it is")
     else:
         content = data.load(args.path)
     scene = content.scene if isinstance(content, data.RunContent) else content

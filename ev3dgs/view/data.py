@@ -4,8 +4,10 @@
   camera centres in time order, with its start and end;
 * camera frusta: the pinhole's vertical field of view, aspect, orientation (wxyz) and centre, in viser's
   convention (OpenCV axes: +z forward, +x right, +y down), and the world corners of the image plane at a depth;
-* event images: the events of one exposure window [start, t) counted per pixel and polarity, ON and OFF drawn
-  in two colours on a white background;
+* event images: the events of one view's window [start, t) counted per pixel and polarity, ON and OFF drawn
+  in the colours of ev3dgs/palette.py on a white background; the window is the exposure, or, when the exposure
+  holds too few events to show anything (a short exposure on a real sensor), the interval to the next frame
+  (``event_window`` says which);
 * Gaussian splats: centres, 3x3 covariances R diag(s^2) R^T, base colours (the degree-0 SH term, no view
   dependence) and opacities from the same raw parameters `ev3dgs export` writes;
 * IMU-integrated rotation: the gyro (camera frame, deg/s) integrated from the first pose sample, beside the
@@ -26,9 +28,7 @@ from ..event_file import EventFile
 from ..errors import InputError
 from ..geometry import matrix_to_quat, relative_rotation_angle, rotvec_to_matrix
 
-ON_COLOUR = np.array([30, 90, 230], np.uint8)     # blue
-OFF_COLOUR = np.array([220, 40, 40], np.uint8)    # red
-BACKGROUND = np.array([255, 255, 255], np.uint8)
+from .. import palette  # the polarity colours of every figure (ON red, OFF blue, white background)
 
 
 # ------------------------------------------------------------------------------------ geometry
@@ -96,7 +96,7 @@ def polarity_counts(x: np.ndarray, y: np.ndarray, p: np.ndarray, width: int, hei
 
 
 def event_image(on: np.ndarray, off: np.ndarray, saturation: float | None = None) -> np.ndarray:
-    """An RGB uint8 picture of ON/OFF counts: white where no event fired, ON_COLOUR / OFF_COLOUR at
+    """An RGB uint8 picture of ON/OFF counts: white where no event fired, palette.ON_RGB / OFF_RGB at
     `saturation` counts or more, linear in between; a pixel with both mixes them (their weights add). The
     default saturation is the 99th percentile of the non-zero per-pixel counts (at least 1), so one hot pixel
     does not wash out the rest."""
@@ -106,9 +106,36 @@ def event_image(on: np.ndarray, off: np.ndarray, saturation: float | None = None
         saturation = max(1.0, float(np.percentile(nz, 99))) if nz.size else 1.0
     a_on = np.minimum(on / saturation, 1.0)[..., None]
     a_off = np.minimum(off / saturation, 1.0)[..., None]
-    bg = BACKGROUND.astype(np.float64)
-    img = bg + a_on * (ON_COLOUR - bg) + a_off * (OFF_COLOUR - bg)
+    bg = np.asarray(palette.BACKGROUND_RGB, np.float64)
+    img = bg + a_on * (np.asarray(palette.ON_RGB) - bg) + a_off * (np.asarray(palette.OFF_RGB) - bg)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+MIN_WINDOW_EVENTS = 0.01   # an exposure with fewer events than this fraction of the pixels shows the interval
+
+
+def event_window(exposure: np.ndarray, i: int, count, width: int, height: int) -> tuple[int, int, str]:
+    """(start, end, what) of the events shown for view i: its exposure when that holds at least
+    MIN_WINDOW_EVENTS x the pixel count of events, else the interval from its exposure's start to the next
+    view's (the last view: as long as the previous interval), when that is longer. `count(start, end)` counts
+    the events in [start, end). `what` names the window for a caption, e.g. "exposure, 100.0 ms" or "to the
+    next frame, 33.3 ms (the 0.50 ms exposure holds 12 events)"."""
+    exposure = np.asarray(exposure, np.int64)
+    start, end = (int(v) for v in exposure[i])
+    n = int(count(start, end))
+    if n >= MIN_WINDOW_EVENTS * width * height or len(exposure) < 2:
+        return start, end, f"exposure, {_ms(end - start)}"
+    if i + 1 < len(exposure):
+        nxt = int(exposure[i + 1, 0])
+    else:
+        nxt = start + int(exposure[i, 0] - exposure[i - 1, 0])
+    if nxt <= end:
+        return start, end, f"exposure, {_ms(end - start)}"
+    return start, nxt, f"to the next frame, {_ms(nxt - start)} (the {_ms(end - start)} exposure holds {n} events)"
+
+
+def _ms(us: int) -> str:
+    return f"{us / 1000:.1f} ms" if us >= 10_000 else f"{us / 1000:.2f} ms"
 
 
 def accumulation_time(exposure: np.ndarray, fraction: float) -> int:
@@ -255,10 +282,18 @@ class SceneContent:
     def mid_poses(self) -> np.ndarray | None:
         return None if self.train_poses is None else self.train_poses[:, self.train_poses.shape[1] // 2]
 
+    def event_window(self, reader: EventFile, i: int) -> tuple[int, int, str]:
+        """(start, end, what) of view i's events: the exposure, or the interval to the next frame when the
+        exposure holds too few events (see the module function `event_window`)."""
+        def count(a, b):  # two binary searches over the time stamps
+            return reader._index(b) - reader._index(a)
+
+        return event_window(self.exposure, i, count, *self.size)
+
     def event_counts(self, reader: EventFile, i: int, fraction: float = 1.0):
-        """(on, off) counts of view i's exposure from its start up to `fraction` of it."""
-        start = int(self.exposure[i, 0])
-        _, x, y, p = reader.window(start, accumulation_time(self.exposure[i], fraction))
+        """(on, off) counts of view i's event window (`event_window`) from its start up to `fraction` of it."""
+        start, end, _ = self.event_window(reader, i)
+        _, x, y, p = reader.window(start, accumulation_time((start, end), fraction))
         return polarity_counts(x, y, p, *self.size)
 
 
@@ -315,18 +350,20 @@ def _refined(run: Path, sc: SceneContent):
     return poses, pose_t
 
 
-def _scene_of_run(run: Path, config: dict, override: str | os.PathLike | None = None) -> Path:
+def _scene_of_run(run: Path, config: dict, override: str | os.PathLike | None = None,
+                  other_scene: bool = False) -> Path:
     """The run's scene file (train/run_scene.py): the --scene override, else the path config.json records
     relative to the run folder, its absolute path, an old run's path as given (from the current folder, the
     run folder or its parents), the file name beside the run folder or in its parents."""
     from ..train.run_scene import resolve_scene
 
-    return resolve_scene(run, config, override)
+    return resolve_scene(run, config, override, other_scene)
 
 
-def load_run_content(run_dir: str | os.PathLike, device="cpu", scene: str | os.PathLike | None = None) -> RunContent:
+def load_run_content(run_dir: str | os.PathLike, device="cpu", scene: str | os.PathLike | None = None,
+                     other_scene: bool = False) -> RunContent:
     """A run folder's model (model.pt, or the latest ckpt.pt of a run still training) and its scene (`scene`:
-    the --scene override)."""
+    the --scene override; one that is not the run's scene only with `other_scene`)."""
     from ..splat.model import GaussianModel
     from ..train.checkpoint import read_checkpoint
 
@@ -342,11 +379,11 @@ def load_run_content(run_dir: str | os.PathLike, device="cpu", scene: str | os.P
         raise InputError(f"{run / 'config.json'}: not readable ({e})") from None
     if not isinstance(config, dict) or not isinstance(config.get("scene"), str):
         raise InputError(f"{run / 'config.json'}: names no scene file")
-    scene_path = _scene_of_run(run, config, scene)
+    scene_path = _scene_of_run(run, config, scene, other_scene)
     if (run / "model.pt").is_file():
         from ..train.evaluate import load_run
 
-        _, model = load_run(run, device, scene=scene_path)
+        _, model = load_run(run, device, scene=scene_path, other_scene=True)  # checked just above
         source = "model.pt"
     elif (run / "ckpt.pt").is_file():
         payload = read_checkpoint(run / "ckpt.pt", device)

@@ -1,8 +1,9 @@
-"""`ev3dgs view ... --png OUT`: the viewer's content as one static figure (no server, no browser).
+"""`ev3dgs view ... --out FILE.png`: the viewer's content as one static figure (no server, no browser).
 
 Left: a contact sheet, one row per selected training view: the blurry frame, the sharp frame (where the scene
-has one), the events of the exposure (ON blue, OFF red) and, for a run, the model rendered at the mid-exposure
-pose. Right: a top view of the camera centres and exposure trajectories (looking down the cameras' mean up
+has one), the view's events (colours from ev3dgs/palette.py, ON red, OFF blue, with a legend; the window is
+the exposure, or the interval to the next frame when the exposure holds too few events, and each panel says
+which) and, for a run, the model rendered at the mid-exposure pose. Right: a top view of the camera centres and exposure trajectories (looking down the cameras' mean up
 vector), and every view's exposure trajectory relative to its start, in its own camera axes.
 """
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import palette
 from ..event_file import EventFile
 from . import data
 
@@ -112,8 +114,9 @@ def draw(content: data.SceneContent | data.RunContent, rows: int = 4):
     c = run.scene if run is not None else content
     n = c.n_views
     idx = pick_rows(n, rows)
+    events_col = f"events ({palette.legend_text()})"
     cols = ["blurry frame"] + (["sharp frame"] if c.scene.train is not None and c.scene.train.sharp is not None
-                               else []) + ["events (ON blue, OFF red)"] + (["model render"] if run else [])
+                               else []) + [events_col] + (["model render"] if run else [])
     has_poses = c.train_poses is not None
     W, H = c.size
     cell = 1.9
@@ -125,6 +128,7 @@ def draw(content: data.SceneContent | data.RunContent, rows: int = 4):
     with EventFile(c.path) as reader:
         for r, i in enumerate(idx):
             on, off = c.event_counts(reader, i)
+            _, _, window = c.event_window(reader, i)
             imgs = [np.asarray(c.frame(i))]
             if "sharp frame" in cols:
                 imgs.append(np.asarray(c.sharp(i)))
@@ -140,8 +144,8 @@ def draw(content: data.SceneContent | data.RunContent, rows: int = 4):
                     ax.set_title(cols[k], fontsize=8)
                 if k == 0:
                     ax.set_ylabel(f"view {i}", fontsize=8)
-                if k == cols.index("events (ON blue, OFF red)"):
-                    ax.set_xlabel(f"{int(on.sum())} ON, {int(off.sum())} OFF", fontsize=6)
+                if k == cols.index(events_col):
+                    ax.set_xlabel(_wrap(f"{int(on.sum())} ON, {int(off.sum())} OFF; {window}", 44), fontsize=6)
     refined = (run.refined_poses, run.refined_t) if run is not None else (None, None)
     if has_poses:
         half = max(len(idx), 2) // 2
@@ -154,10 +158,19 @@ def draw(content: data.SceneContent | data.RunContent, rows: int = 4):
     if not has_poses:
         title += " (no poses in the file: ingested without pose estimation)"
     if c.failed:
-        title += f"; failed to register: {', '.join(c.failed)}"
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+        shown = ", ".join(c.failed[:3]) + (f" and {len(c.failed) - 3} more" if len(c.failed) > 3 else "")
+        title += f"; {len(c.failed)} failed to register: {shown}"
+    palette.fit_suptitle(fig, title, fontsize=9)
+    fig.legend(handles=palette.legend_handles(), loc="lower left", fontsize=6, ncol=2, frameon=False,
+               bbox_to_anchor=(0.0, 0.0))
+    fig.tight_layout(rect=(0, 0.04, 1, 1))   # the legend's row at the bottom
     return fig
+
+
+def _wrap(text: str, width: int) -> str:
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width))
 
 
 def write_png(content: data.SceneContent | data.RunContent, out: str | Path, rows: int = 4, dpi: int = 120) -> Path:
@@ -167,7 +180,7 @@ def write_png(content: data.SceneContent | data.RunContent, out: str | Path, row
     from ..outputs import atomic_path, check_output_file, remove_stale_temps
 
     out = Path(out)
-    check_output_file(out, 2 << 20, make_parents=True, option="--png")
+    check_output_file(out, 2 << 20, make_parents=True, option="--out")
     fig = draw(content, rows)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)

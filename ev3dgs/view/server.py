@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import palette
 from ..errors import Ev3dgsError
 from ..event_file import EventFile
 from . import data
@@ -71,7 +72,7 @@ def require_viser():
         import viser
     except ImportError:
         raise Ev3dgsError("`ev3dgs view` needs the optional package viser, which is not installed: "
-                          "pip install ev3dgs[view] (or use --png for a static figure)") from None
+                          "pip install ev3dgs[view] (or give --out FILE.png for a static figure)") from None
     return viser
 
 
@@ -329,14 +330,14 @@ class Viewer:
         self._reader = EventFile(c.path)
         select = int(min(max(select, 0), n - 1))
         self.view_slider = g.add_slider("view", 0, max(n - 1, 1), 1, select, disabled=n < 2, order=2)
-        self.time_slider = g.add_slider("events up to (% of exposure)", 0, 100, 1, 100, order=3)
+        self.time_slider = g.add_slider("events up to (% of the window)", 0, 100, 1, 100, order=3)
         self.caption = g.add_markdown("", order=4)
         self.frame_image = g.add_image(np.asarray(c.frame(select)), label="blurry frame", format="png", order=5)
         sharp = c.sharp(select)
         self.sharp_image = None if sharp is None else g.add_image(np.asarray(sharp), label="sharp frame",
                                                                   format="png", order=6)
         self.event_image = g.add_image(np.full((c.size[1], c.size[0], 3), 255, np.uint8), format="png",
-                                       label="events (ON blue, OFF red)", order=7)
+                                       label=f"events ({palette.legend_text()})", order=7)
         self.view_slider.on_update(lambda _e: self._select(int(self.view_slider.value)))
         self.time_slider.on_update(lambda _e: self._update_events())
         self._select(select)
@@ -401,11 +402,13 @@ class Viewer:
         frac = float(self.time_slider.value) / 100
         with self._lock:
             on, off = c.event_counts(self._reader, i, frac)
-            self.event_image.image = data.event_image(on, off)
-            t = data.accumulation_time(c.exposure[i], frac)
+            self.event_image.image = data.event_image(on, off)   # palette's colours (ON red, OFF blue)
+            w0, w1, window = c.event_window(self._reader, i)
+            t = data.accumulation_time((w0, w1), frac)
             start, end = (int(v) for v in c.exposure[i])
-            self.caption.content = (f"**view {i}** of {c.n_views}: exposure {start}-{end} us; events up to "
-                                    f"{t} us: {int(on.sum())} ON, {int(off.sum())} OFF")
+            self.caption.content = (f"**view {i}** of {c.n_views}: exposure {start}-{end} us; events shown: "
+                                    f"{window}, up to {t} us: {int(on.sum())} ON, {int(off.sum())} OFF "
+                                    f"({palette.legend_text()})")
 
     # ------------------------------------------------------------------ a model
     def show_splats(self, arrays: dict) -> None:

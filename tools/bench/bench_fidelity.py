@@ -199,7 +199,7 @@ def run_one(scene: Path, overrides: dict, seed: int, iterations: int, init_point
 
     def score(run: dict) -> dict:   # evaluate, record with the run's training facts, write metrics.json
         m = evaluate(out, lpips_weights=lpips_weights, write_images=False,
-                     **({} if eval_scene is None else {"scene": eval_scene}))
+                     **({} if eval_scene is None else {"scene": eval_scene, "other_scene": True}))
         m |= run | {"scoring_code": scoring} | ({"scored_on": scored_on} if scored_on else {})
         done.write_text(json.dumps(m, indent=2))
         return m

@@ -156,7 +156,7 @@ def novel_view_bands(run: Path, scene: Path) -> dict:
     from ev3dgs import schema
     from ev3dgs.train.evaluate import load_run, render_views
 
-    cfg, model = load_run(run, "cpu", scene=scene)
+    cfg, model = load_run(run, "cpu", scene=scene, other_scene=True)  # may be another file than the training scene
     sc = schema.read(scene)
     bg = sc.camera.background if sc.camera.background is not None else (0, 0, 0)
     pred = render_views(model, np.asarray(sc.test.poses), torch.as_tensor(sc.camera.K, dtype=model.dtype),
