@@ -99,7 +99,8 @@ def view_strip(sc: schema.Scene, view: int) -> np.ndarray:
     k = max(1, -(-STRIP_MIN_PANEL // W))
     cols = []
     for img, label in panels:
-        big = np.repeat(np.repeat(img, k, axis=0), k, axis=1)
+        big = np.pad(np.repeat(np.repeat(img, k, axis=0), k, axis=1), ((1, 1), (1, 1), (0, 0)),
+                     constant_values=160)   # a grey frame: a white background does not run into the page
         width = big.shape[1]
         under = (_fit_lines(f"{int(on.sum())} ON, {int(off.sum())} OFF; {window}", width)
                  if label.startswith("events") else [])

@@ -136,7 +136,7 @@ def test_demo_runs_and_writes_a_valid_scene(tmp_path):
     assert result["events"] > 0
     png = cv2.imread(str(tmp_path / "lego_view0.png"))
     k = -(-demo.STRIP_MIN_PANEL // 48)           # each 48x36 panel enlarged k times, three panels side by side
-    assert png.shape[1] == 3 * (k * 48 + 6) and png.shape[0] > k * 36 + 3 * demo._LINE
+    assert png.shape[1] == 3 * (k * 48 + 2 + 6) and png.shape[0] > k * 36 + 3 * demo._LINE   # 1 px frame, 6 apart
 
 
 @pytest.mark.slow
