@@ -60,6 +60,14 @@ def _record_given(sub) -> None:
     def parse_known_args(args=None, namespace=None):
         opts = [a for a in sub._actions if a.option_strings and a.default is not argparse.SUPPRESS
                 and not isinstance(a, argparse._AppendAction)]   # --set: its own list, None when not given
+        from ..train.layout import former_flag_message
+
+        for a in args or ():   # a flag that became a config key: say which, in one line
+            hint = former_flag_message(a) if isinstance(a, str) and a.startswith("--") else None
+            if hint is not None:
+                from ..errors import ConfigError
+
+                raise ConfigError(hint)
         namespace = argparse.Namespace() if namespace is None else namespace
         for a in opts:
             if not hasattr(namespace, a.dest):

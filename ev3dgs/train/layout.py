@@ -157,11 +157,53 @@ def parse_set(item: str) -> tuple[list[str], object]:
     return [p.strip() for p in path], value
 
 
+def former_flags() -> dict[str, tuple[str, bool]]:
+    """{former `ev3dgs train` flag: (its train.toml key, whether it was a switch)} for the flags that became
+    config keys (docs/commands/ev3dgs-train.md lists them)."""
+    from .config import CLI_FLAGS
+
+    out = {}
+    for field, key in FIELD_KEY.items():
+        flag = "--" + field.replace("_", "-")
+        if flag not in CLI_FLAGS and field not in ("scene", "schedule_length", "naive", "oracle"):
+            out[flag] = (key, key in SWITCHES)
+    out.update({"--learn-response": ("response", True), "--threshold-map": ("threshold_map", True),
+                "--hdr": ("hdr", True), "--edi-prior": ("edi_prior.weight", False),
+                "--densify-from": ("densify.from", False), "--view-every": ("view.every", False),
+                "--view-host": ("view.host", False), "--view-port": ("view.port", False),
+                "--learn-thresholds": ("events.learn_thresholds", False)})
+    for never in ("--densify", "--init-opacity", "--ssim-lambda"):   # config keys that never were flags
+        out.pop(never, None)
+    out.pop("--event-loss", None)
+    out.pop("--refine-poses", None)
+    return out
+
+
+def former_flag_message(flag: str) -> str | None:
+    """The one-line hint for a flag `ev3dgs train` no longer has, or None."""
+    name = flag.split("=", 1)[0]
+    hit = former_flags().get(name)
+    if hit is None:
+        return None
+    key, switch = hit
+    how = f"--set {key}=true" if switch or key == "events.learn_thresholds" else f"--set {key}=VALUE"
+    where = f"a [{key}] table" if switch else f"{key}"
+    return (f"{name} is a config key now: {how} (or {where} in the --config file; docs/commands/ev3dgs-train.md "
+            "lists every former flag)")
+
+
 def apply_set(data: dict, items: list[str]) -> dict:
-    """``data`` with every --set item applied (a key of an absent term's table turns the term on)."""
+    """``data`` with every --set item applied (a key of an absent term's table turns the term on;
+    ``--set TABLE=true`` / ``=false`` switches a term's table on with its defaults / off)."""
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items()}
     for item in items:
         path, value = parse_set(item)
+        if len(path) == 1 and (path[0] in SWITCHES or path[0] == "edi_prior") and isinstance(value, bool):
+            if value:
+                out.setdefault(path[0], {})
+            else:
+                out.pop(path[0], None)
+            continue
         if len(path) == 1:
             if isinstance(out.get(path[0]), dict):
                 raise ConfigError(f"--set {item}: [{path[0]}] is a table; set one of its keys "

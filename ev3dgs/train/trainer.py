@@ -290,6 +290,10 @@ class Trainer:
         out = {id(p): p for p in self.model.params.values()}
         for term in self.terms:
             out.update({id(p): p for p in term.parameters()})
+        extra = [o for o in vars(self).values() if isinstance(o, torch.optim.Optimizer)]   # any other optimiser
+        for opt in list(self.optimizers.values()) + extra:
+            for group in opt.param_groups:
+                out.update({id(p): p for p in group["params"]})
         return list(out.values())
 
     def _guard(self, loss, losses: dict) -> None:
@@ -376,17 +380,23 @@ class Trainer:
 
 # files a term writes into the run folder (train/terms/)
 TERM_FILES = ("trajectory.npz", "response.json", "sensor_model.json")
-# no schedule starts before this many steps, whatever the run length: a scene needs a first fit before
-# densification splits it, the opacity reset clears it, or pose refinement moves the cameras (issue: a
-# 150-step run densified from step 2 and reset the opacities every 15 steps)
-MIN_SCHEDULE_STEPS = 100
+# Short runs: no schedule starts before a scene has had a first fit, whatever the run length (a 150-step run
+# scaled from 3DGS's 30 000 densified from step 2 and reset every opacity every 15 steps, and fell to a white
+# blob). Densification starts at step MIN_DENSIFY_START at the earliest, the opacity reset comes at most every
+# MIN_RESET_EVERY steps, the EDI prior fades over MIN_EDI_ANNEAL_STEPS at least; pose refinement starts at
+# poses.start (100 steps by default), an absolute step. Runs of 3000 steps and more are not affected.
+MIN_DENSIFY_START = 50
+MIN_RESET_EVERY = 100
+MIN_EDI_ANNEAL_STEPS = 100
 
 
 def densify_schedule(iterations: int) -> dict:
-    """The densification steps of a run of ``iterations`` steps: strategy.scaled_schedule, with refinement
-    starting no earlier than MIN_SCHEDULE_STEPS and opacity resets no more often than every
-    MIN_SCHEDULE_STEPS (a run shorter than that is never densified: refine_stop <= refine_start)."""
-    return scaled_schedule(iterations)
+    """The densification steps of a run whose schedules are ``iterations`` long: strategy.scaled_schedule with
+    the floors above (a run whose scaled refine_stop comes before MIN_DENSIFY_START is not densified)."""
+    sched = scaled_schedule(iterations)
+    sched["refine_start"] = max(sched["refine_start"], MIN_DENSIFY_START)
+    sched["reset_every"] = max(sched["reset_every"], MIN_RESET_EVERY)
+    return sched
 
 
 # what `ev3dgs train` and `ev3dgs eval` write in a run folder; a fresh run removes them (and nothing else)

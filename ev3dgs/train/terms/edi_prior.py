@@ -1,6 +1,7 @@
 """[edi_prior]: the event double integral prior (train/edi_prior.py). Each sub-pose render is pulled towards
 the sharp frame the blurry frame and the exposure's events give, weighted by that target's expected error;
-its weight falls linearly to 0 at edi_prior.anneal of the run's schedule length. Reads the event term's
+its weight falls linearly to 0 at edi_prior.anneal of the run's schedule length (over at least
+trainer.MIN_EDI_ANNEAL_STEPS steps). Reads the event term's
 renders, floor and thresholds of the same step; needs the noise norm."""
 from __future__ import annotations
 
@@ -43,7 +44,10 @@ class EDIPrior(Term):
 
     def loss(self, step):
         cfg, d, sh = self.trainer.cfg, self.trainer.data, step.shared
-        fade = anneal_factor(self.trainer.step, cfg.schedule_iterations, cfg.edi_anneal)
+        from ..trainer import MIN_EDI_ANNEAL_STEPS
+
+        length = max(cfg.schedule_iterations, MIN_EDI_ANNEAL_STEPS / cfg.edi_anneal)   # fades over >= that
+        fade = anneal_factor(self.trainer.step, length, cfg.edi_anneal)
         if fade <= 0 or "log_l" not in sh:
             return None, {"edi": 0.0}
         events = self.trainer.term("events")
