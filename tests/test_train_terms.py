@@ -278,3 +278,34 @@ def test_a_checkpoint_written_before_the_terms_resumes_as_an_uninterrupted_run(t
     resumed = torch.load(old / "cut" / "model.pt", weights_only=True)["model"]
     for k, v in fresh.model.state_dict().items():
         assert torch.equal(torch.as_tensor(resumed[k]), torch.as_tensor(v)), k
+
+
+def test_the_example_train_toml_in_the_docs_is_a_valid_config():
+    text = (Path(__file__).parent.parent / "docs" / "trainer.md").read_text()
+    block = text.split("```toml\n", 1)[1].split("```", 1)[0]
+    cfg = TrainConfig.from_toml({**tomllib.loads(block), "scene": "s.h5"})
+    assert cfg.event_loss and cfg.refine_poses and cfg.edi_prior == 0.0128 and not cfg.hdr
+
+
+@pytest.mark.parametrize("module", ["bench_fidelity", "study_event_term"])
+def test_the_studies_variants_are_train_toml_tables(module):
+    """The studies write their variants in train.toml's shape; merged onto the built-in settings each one is a
+    train.toml giving the same settings as the variant's TrainConfig overrides."""
+    import importlib
+    import sys
+
+    root = Path(__file__).parent.parent / "tools"
+    for sub in ("", "bench", "studies"):
+        if str(root / sub) not in sys.path:
+            sys.path.insert(0, str(root / sub))
+    mod = importlib.import_module(module)
+    for name, variant in mod.VARIANTS_TOML.items():
+        data = {**TrainConfig.default_toml(), "scene": "s.h5"}
+        for k, v in variant.items():
+            if v is False:
+                data.pop(k, None)
+            elif isinstance(v, dict):
+                data[k] = {**data.get(k, {}), **v}
+            else:
+                data[k] = v
+        assert TrainConfig.from_toml(data) == TrainConfig(scene="s.h5", **mod.VARIANTS[name]), name

@@ -104,7 +104,7 @@ def test_installed_wheel_runs_the_chain_from_another_directory(wheel, tmp_path):
 def _chain(bin_, work, env, scene, tag):
     """train 20 steps -> eval -> export-dataset -> view figure, run from a folder other than the run's."""
     run = f"{tag}/run"
-    _run([bin_ / "ev3dgs", "train", scene, "--out", run, "--iterations", "20", "--init-points", "2000",
+    _run([bin_ / "ev3dgs", "train", scene, "--out", run, "--iterations", "20", "--set", "init_points=2000",
           "--quiet"], work, env)
     elsewhere = work / f"{tag}-elsewhere"
     elsewhere.mkdir()

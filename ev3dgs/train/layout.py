@@ -68,8 +68,8 @@ def _value(value, tp, key: str):
     try:
         return _coerce(value, tp, key)
     except ConfigError as e:
-        hint = " or \"auto\"" if optional else ""
-        raise ConfigError(f"{e}{hint}") from None
+        text = str(e).replace(": expected ", ": expected \"auto\" or ", 1) if optional else str(e)
+        raise ConfigError(text) from None
 
 
 def flat_settings(data: dict, cls, registry: dict) -> dict:
@@ -252,3 +252,34 @@ def dumps(data: dict, comments: dict | None = None) -> str:
             for kk, vv in v.items():
                 put(kk, vv, f"{k}.{kk}")
     return "\n".join(lines) + "\n"
+
+
+def variant_overrides(variant: dict) -> dict:
+    """TrainConfig keyword overrides from a variant written in train.toml's shape (the studies' variants):
+    core keys at the top, ``{table: {key: value}}`` for a term's keys (its table present: the term on),
+    ``{table: False}`` for a term switched off (``{"events": False}``: the blur term alone). Unknown keys are
+    one-line ConfigErrors, as in a train.toml."""
+    out: dict = {}
+    for name, value in variant.items():
+        if name in LAYOUT[""]:
+            out[name] = value
+            continue
+        if name not in LAYOUT or name == "":
+            raise ConfigError(f"unknown config key {name} in a variant")
+        if value is False:
+            if name == "edi_prior":
+                out["edi_prior"] = 0.0
+            elif name in SWITCHES:
+                out[SWITCHES[name]] = False
+            else:
+                raise ConfigError(f"[{name}] cannot be switched off")
+            continue
+        if not isinstance(value, dict):
+            raise ConfigError(f"{name}: expected a table or false in a variant")
+        if name in SWITCHES and name != "events":   # [events] is on by default: only False says something
+            out[SWITCHES[name]] = True
+        for key, v in value.items():
+            if key not in LAYOUT[name]:
+                raise ConfigError(f"unknown config key {name}.{key} (known in [{name}]: {', '.join(LAYOUT[name])})")
+            out[LAYOUT[name][key]] = v
+    return out
