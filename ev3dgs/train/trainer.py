@@ -280,8 +280,12 @@ class Trainer:
         if not (self.cfg.densify_source == "blur" and set(step.losses) - {"blur"} and self.cfg.densify
                 and self.step < self.strategy.refine_stop and "blur" in step.losses):
             return None
-        return torch.autograd.grad(step.losses["blur"], [step.info["means2d"]], retain_graph=True,
-                                   allow_unused=True)[0]
+        parts = step.info.get("means2d_parts")   # a backend that rendered camera by camera (rasterize.py)
+        targets = parts if parts is not None else [step.info["means2d"]]
+        grads = torch.autograd.grad(step.losses["blur"], targets, retain_graph=True, allow_unused=True)
+        if parts is None:
+            return grads[0]
+        return torch.stack([torch.zeros_like(p) if g is None else g for p, g in zip(parts, grads)])
 
     def trained_parameters(self) -> list[torch.Tensor]:
         """Every tensor a step updates and the guard checks: the Gaussians and every term's parameters (the
