@@ -153,7 +153,7 @@ def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_no
     0.098; a 30-step fit of this scene is at 0.06) drives the weight to its bound and the run away from the
     one with 0; auto (the default) finds under one level of noise in this noise-free scene's frames (0.33), which is
     taken as none: the run is the one with 0, bit for bit."""
-    import ev3dgs.train.trainer as T
+    from ev3dgs.train.frame_noise import blur_weight
     from ev3dgs.train.frame_noise import W_MIN
 
     runs = {}
@@ -162,7 +162,7 @@ def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_no
         tr.fit()
         runs[name] = tr
     assert runs["off"].frame_noise_var == 0.0 and runs["off"].blur_mse is None
-    assert T.blur_weight(runs["loud"].frame_noise_var, runs["loud"].blur_mse) == W_MIN
+    assert blur_weight(runs["loud"].frame_noise_var, runs["loud"].blur_mse) == W_MIN
     assert not torch.equal(runs["off"].model.params["means"], runs["loud"].model.params["means"])
     assert TrainConfig(scene=scene_path).frame_noise is None and runs["auto"].frame_noise_var == 0.0
     for n, p in runs["auto"].model.params.items():
