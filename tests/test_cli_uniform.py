@@ -15,7 +15,8 @@ from ev3dgs.cli import main as cli
 from cli_exit import exit_code
 
 W, H = 32, 24
-FAST = ["--iterations", "5", "--init-points", "500", "--threads", "1", "--sh-degree", "0", "--checkpoint-every", "5"]
+FAST = ["--iterations", "5", "--set", "init_points=500", "--threads", "1", "--set", "sh_degree=0",
+        "--set", "checkpoint_every=5"]
 
 
 def make_scene(path) -> str:

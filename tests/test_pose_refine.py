@@ -304,18 +304,17 @@ def test_resume_continues_the_refinement_exactly(scene, tmp_path, frame):
 
 def test_eval_uses_the_trajectory_and_cli_refusals(scene, tmp_path, capsys):
     out = tmp_path / "run"
-    assert cli.main(["train", scene, "--out", str(out), "--iterations", "3", "--init-points", "200",
-                     "--subposes", "3", "--sh-degree", "0", "--device", "cpu", "--refine-poses", "--pose-start",
-                     "0", "--pose-frame", "camera", "--quiet"]) == 0
+    assert cli.main(["train", scene, "--out", str(out), "--iterations", "3", "--set", "init_points=200",
+                     "--set", "blur.subposes=3", "--set", "sh_degree=0", "--set", "device=cpu", "--refine-poses",
+                     "--set", "poses.start=0", "--set", "poses.frame=camera", "--quiet"]) == 0
     assert (out / "trajectory.npz").is_file()
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["refine_poses"] is True and cfg["pose_frame"] == "camera"
     with np.load(out / "trajectory.npz") as z:
         assert str(z["frame"]) == "camera" and z["frame_rotations"].shape == (4, 3, 3)
-    for bad in (["--pose-lr", "0"], ["--pose-max-rotation", "-1"], ["--refine-poses", "--oracle"],
-                ["--pose-gauge", "mean"], ["--pose-frame", "body"]):
-        with pytest.raises(SystemExit) if bad[0] in ("--pose-gauge", "--pose-frame") else _no_raise():
-            assert cli.main(["train", scene, "--out", str(tmp_path / "x"), "--refine-poses", *bad]) == 2
+    for bad in (["--set", "poses.lr=0"], ["--set", "poses.max_rotation=-1"], ["--refine-poses", "--oracle"],
+                ["--set", "poses.gauge=mean"], ["--set", "poses.frame=body"]):
+        assert cli.main(["train", scene, "--out", str(tmp_path / "x"), "--refine-poses", *bad]) == 2
     (out / "trajectory.npz").write_bytes(b"not a zip")
     from ev3dgs.errors import InputError
     from ev3dgs.train.evaluate import evaluate
@@ -366,9 +365,9 @@ def test_render_orbits_the_refined_trajectory(scene, tmp_path, capsys):
     import cv2
 
     run = tmp_path / "run"
-    assert cli.main(["train", scene, "--out", str(run), "--iterations", "3", "--init-points", "200",
-                     "--subposes", "3", "--sh-degree", "0", "--device", "cpu", "--refine-poses", "--pose-start",
-                     "0", "--quiet"]) == 0
+    assert cli.main(["train", scene, "--out", str(run), "--iterations", "3", "--set", "init_points=200",
+                     "--set", "blur.subposes=3", "--set", "sh_degree=0", "--set", "device=cpu", "--refine-poses",
+                     "--set", "poses.start=0", "--quiet"]) == 0
     moved = tmp_path / "moved"
     shutil.copytree(run, moved)
     d = np.array([0.4, -0.3, 0.25])

@@ -31,6 +31,6 @@ def test_record_ingest_with_poses_then_train(tmp_path):
     err = poses_vs_truth(scene, rec.with_suffix(".trajectory.npz"))
     assert err["rotation_deg_median"] < 2.0 and err["centre_error_rel_extent"] < 0.05, err
     assert cli.main(["train", str(scene), "--out", str(tmp_path / "run"), "--iterations", "20",
-                     "--init-points", "500", "--quiet"]) == 0
+                     "--set", "init_points=500", "--quiet"]) == 0
     log = (tmp_path / "run" / "log.jsonl").read_text().splitlines()
     assert len(log) == 20 and np.isfinite([__import__("json").loads(x)["loss"] for x in log]).all()

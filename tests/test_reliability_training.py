@@ -153,8 +153,8 @@ def _run_env(args: list[str], **env) -> subprocess.CompletedProcess:
 
 def test_thread_environment_does_not_change_a_bit(scene, tmp_path):
     """NUMBA_NUM_THREADS / OMP_NUM_THREADS fixed at process start (the robust way to change numba's pool)."""
-    common = [scene, "--iterations", "6", "--init-points", "600", "--sh-degree", "1", "--subposes", "5",
-              "--device", "cpu", "--backend", "cpu", "--seed", "3", "--quiet"]
+    common = [scene, "--iterations", "6", "--set", "init_points=600", "--set", "sh_degree=1", "--set",
+              "blur.subposes=5", "--backend", "cpu", "--seed", "3", "--quiet"]
     r1 = _run_env(["train", *common, "--out", str(tmp_path / "t1")], NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
     r2 = _run_env(["train", *common, "--out", str(tmp_path / "t2")], NUMBA_NUM_THREADS="2", OMP_NUM_THREADS="2")
     assert r1.returncode == 0 and r2.returncode == 0, r1.stderr + r2.stderr
@@ -198,8 +198,8 @@ def _cli(capsys, *args) -> tuple[int, str]:
 
 
 def _base(scene, run, *extra):
-    return ["train", scene, "--out", run, "--init-points", "300", "--sh-degree", "1", "--subposes", "3",
-            "--device", "cpu", "--backend", "cpu", "--threads", "1", "--quiet", *extra]
+    return ["train", scene, "--out", run, "--set", "init_points=300", "--set", "sh_degree=1", "--set",
+            "blur.subposes=3", "--backend", "cpu", "--threads", "1", "--quiet", *extra]
 
 
 def _steps(run: Path) -> list[int]:
@@ -217,7 +217,7 @@ def assert_one_line_error(rc: int, err: str, *needles: str) -> None:
 def finished_run(scene, tmp_path_factory):
     """A 6-step run with checkpoints every 3 steps, made through the CLI with non-default options."""
     run = tmp_path_factory.mktemp("runs") / "run"
-    assert cli.main(_base(scene, str(run), "--iterations", "6", "--checkpoint-every", "3", "--seed", "4")) == 0
+    assert cli.main(_base(scene, str(run), "--iterations", "6", "--set", "checkpoint_every=3", "--seed", "4")) == 0
     return run
 
 
@@ -231,9 +231,9 @@ def _copy(run: Path, dst: Path) -> Path:
 @pytest.mark.parametrize("flags,diff", [
     (["--seed", "5"], "seed: saved 4 vs given 5"),
     (["--seed", "0"], "seed: saved 4 vs given 0"),          # given, although equal to the CLI default
-    (["--subposes", "4"], "subposes: saved 3 vs given 4"),
-    (["--sh-degree", "2", "--seed", "9"], "sh_degree: saved 1 vs given 2; seed: saved 4 vs given 9"),
-    (["--pose-frame", "camera"], "pose_frame: saved 'world' vs given 'camera'"),
+    (["--set", "blur.subposes=4"], "subposes: saved 3 vs given 4"),
+    (["--set", "sh_degree=2", "--seed", "9"], "sh_degree: saved 1 vs given 2; seed: saved 4 vs given 9"),
+    (["--set", "poses.frame=camera"], "pose_frame: saved 'world' vs given 'camera'"),
 ])
 def test_resume_with_other_settings_is_refused(scene, finished_run, tmp_path, capsys, flags, diff):
     run = _copy(finished_run, tmp_path / "run")
@@ -268,7 +268,7 @@ def _kill_at(step):
 
 def test_resume_extends_and_rolls_the_log_back(scene, tmp_path, capsys):
     run = tmp_path / "run"
-    assert cli.main(_base(scene, str(run), "--iterations", "6", "--checkpoint-every", "3", "--seed", "4")) == 0
+    assert cli.main(_base(scene, str(run), "--iterations", "6", "--set", "checkpoint_every=3", "--seed", "4")) == 0
     cfg = TrainConfig.load(run / "config.json")
     with pytest.raises(Killed):  # the same run again, killed at step 5: checkpoint at 3, log 1..5
         Trainer(cfg, run, quiet=True).fit(on_step=_kill_at(5))
@@ -288,7 +288,7 @@ def test_resume_keeps_the_sh_schedule_the_run_started_with(scene, tmp_path, caps
     """--sh-interval auto is fixed when the run is made (iterations / 30): extending the run to 2x the steps
     keeps the saved interval, where a fresh run of that length would get twice it."""
     run = tmp_path / "run"
-    assert cli.main(_base(scene, str(run), "--iterations", "60", "--checkpoint-every", "30")) == 0
+    assert cli.main(_base(scene, str(run), "--iterations", "60", "--set", "checkpoint_every=30")) == 0
     assert TrainConfig.load(run / "config.json").sh_interval == 2
     assert TrainConfig(scene=scene, iterations=120).sh_interval == 4
     rc, err = _cli(capsys, "train", scene, "--out", run, "--resume", "--iterations", "120")
@@ -317,7 +317,7 @@ def test_resume_before_the_first_checkpoint_restarts_cleanly(scene, tmp_path, ca
 
 def test_a_fresh_run_replaces_the_old_log_and_checkpoint(scene, finished_run, tmp_path, capsys):
     run = _copy(finished_run, tmp_path / "run")
-    assert cli.main(_base(scene, str(run), "--iterations", "2", "--checkpoint-every", "100", "--force")) == 0
+    assert cli.main(_base(scene, str(run), "--iterations", "2", "--set", "checkpoint_every=100", "--force")) == 0
     assert _steps(run) == [1, 2]
     assert torch.load(run / "ckpt.pt", weights_only=True)["step"] == 2
 

@@ -210,8 +210,8 @@ def test_what_validate_passes_trains(scene_copy, tmp_path, capsys, corrupt):
     if corrupt is not None:
         with h5py.File(scene_copy, "r+") as f:
             corrupt(f)
-    argv = ["train", str(scene_copy), "--out", str(tmp_path / "run"), "--iterations", "2", "--init-points", "50",
-            "--sh-degree", "0", "--threads", "1", "--backend", "reference", "--device", "cpu"]
+    argv = ["train", str(scene_copy), "--out", str(tmp_path / "run"), "--iterations", "2", "--set", "init_points=50",
+            "--set", "sh_degree=0", "--threads", "1", "--backend", "reference", "--set", "device=cpu"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SchemaWarning)
         assert cli.main(argv) == 0, capsys.readouterr().err

@@ -153,7 +153,7 @@ def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_no
     0.098; a 30-step fit of this scene is at 0.06) drives the weight to its bound and the run away from the
     one with 0; auto (the default) finds under one level of noise in this noise-free scene's frames (0.33), which is
     taken as none: the run is the one with 0, bit for bit."""
-    import ev3dgs.train.trainer as T
+    from ev3dgs.train.frame_noise import blur_weight
     from ev3dgs.train.frame_noise import W_MIN
 
     runs = {}
@@ -162,7 +162,7 @@ def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_no
         tr.fit()
         runs[name] = tr
     assert runs["off"].frame_noise_var == 0.0 and runs["off"].blur_mse is None
-    assert T.blur_weight(runs["loud"].frame_noise_var, runs["loud"].blur_mse) == W_MIN
+    assert blur_weight(runs["loud"].frame_noise_var, runs["loud"].blur_mse) == W_MIN
     assert not torch.equal(runs["off"].model.params["means"], runs["loud"].model.params["means"])
     assert TrainConfig(scene=scene_path).frame_noise is None and runs["auto"].frame_noise_var == 0.0
     for n, p in runs["auto"].model.params.items():
@@ -175,9 +175,9 @@ def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_no
 
 def test_frame_noise_that_is_not_auto_or_a_number_is_one_line_exit_2(scene_path, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
-        cli.main(["train", scene_path, "--out", str(tmp_path / "r"), "--frame-noise", "loud"])
+        cli.main(["train", scene_path, "--out", str(tmp_path / "r"), "--set", "events.frame_noise=loud"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and err.count("\n") == 1 and "--frame-noise: expected auto or a number" in err
+    assert e.value.code == 2 and err.count("\n") == 1 and 'events.frame_noise: expected "auto" or a number' in err
 
 
 def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_path, tmp_path):
@@ -232,8 +232,8 @@ def test_a_saved_config_without_map_weights_loads_as_the_posterior_weighting_it_
 
 
 def test_map_weights_without_a_map_or_unknown_is_one_line_exit_2(scene_path, tmp_path, capsys):
-    for argv, msg in ((["--map-weights", "posterior"], "give --threshold-map too"),
-                      (["--threshold-map", "--map-weights", "fitted"], "invalid choice")):
+    for argv, msg in ((["--set", "threshold_map.weights=fitted"], "threshold_map.weights must be one of"),
+                      (["--set", "threshold_map.wieghts=prior"], "unknown config key threshold_map.wieghts")):
         assert exit_code(cli.main, ["train", scene_path, "--out", str(tmp_path / "r"), *argv]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and msg in err
@@ -267,28 +267,28 @@ def test_the_auto_sh_schedule_at_known_lengths():
 def test_hdr_needs_the_linear_light_blur_model(scene_path, tmp_path):
     from ev3dgs.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="--hdr needs the linear-light blur model"):
+    with pytest.raises(ConfigError, match=r"\[hdr\] needs the linear-light blur model"):
         cfg(scene_path, hdr=True, blur_space="srgb")
     sc = schema.read(scene_path)   # frames blurred in display values (E2NeRF's data): their blur model is sRGB
     sc.train.transfer = "display"
     schema.write(sc, tmp_path / "display.h5")
-    with pytest.raises(ConfigError, match="--hdr needs the linear-light blur model"):
+    with pytest.raises(ConfigError, match=r"\[hdr\] needs the linear-light blur model"):
         Trainer(cfg(str(tmp_path / "display.h5"), hdr=True), tmp_path / "run", quiet=True)
 
 
 def test_learn_response_is_refused_where_the_frames_are_not_decoded_with_srgb(scene_path, tmp_path):
     from ev3dgs.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="--learn-response needs the linear-light blur model"):
+    with pytest.raises(ConfigError, match=r"\[response\] needs the linear-light blur model"):
         cfg(scene_path, learn_response=True, blur_space="srgb")
-    with pytest.raises(ConfigError, match="--learn-response needs the blur model"):
+    with pytest.raises(ConfigError, match=r"\[response\] needs the blur model"):
         cfg(scene_path, learn_response=True, oracle=True)
-    with pytest.raises(ConfigError, match="--learn-response with --edi-prior"):
+    with pytest.raises(ConfigError, match=r"\[response\] with edi_prior.weight"):
         cfg(scene_path, learn_response=True, edi_prior=0.05)
     sc = schema.read(scene_path)
     sc.train.transfer = "display"
     schema.write(sc, tmp_path / "display.h5")
-    with pytest.raises(ConfigError, match="--learn-response needs a scene whose frames are decoded with sRGB"):
+    with pytest.raises(ConfigError, match=r"\[response\] needs a scene whose frames are decoded with sRGB"):
         Trainer(cfg(str(tmp_path / "display.h5"), learn_response=True), tmp_path / "run", quiet=True)
     # off, a run leaves no curve behind, not even an older run's
     (tmp_path / "r2").mkdir()
@@ -315,7 +315,7 @@ def test_edi_prior_moves_the_fit_while_it_fades_and_is_refused_where_it_has_no_m
                       ({"edi_anneal": 0.0}, "edi-anneal"), ({"edi_prior": -1.0}, "edi-prior must be")):
         with pytest.raises(ConfigError, match=match):
             cfg(scene_path, **{"edi_prior": 0.05, **kw})
-    with pytest.raises(ConfigError, match="--edi-prior: the blurry frame's event intensity"):
+    with pytest.raises(ConfigError, match=r"\[edi_prior\]: the blurry frame's event intensity"):
         Trainer(cfg(scene_path, edi_prior=0.05, blur_space="srgb"), tmp_path / "c", quiet=True)
 
 
@@ -344,15 +344,18 @@ def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypa
 
 
 @pytest.mark.parametrize("flags", [["--naive"], ["--no-event-loss"],
-                                   ["--blur-space", "linear", "--learn-thresholds", "--event-pairs", "3",
-                                    "--threshold-map", "--map-weights", "posterior", "--hdr", "--sh-interval", "4",
-                                    "--edi-prior", "0.02", "--subposes", "7", "--subpose-px", "0.5"],
-                                   ["--hdr", "--learn-response", "--event-pairs", "2", "--frame-noise", "2.5"],
-                                   pytest.param(["--refine-poses", "--subposes", "9", "--subpose-px", "0.5"],
-                                                marks=pytest.mark.slow)])
+                                   ["--set", "blur.space=linear", "--set", "events.learn_thresholds=true",
+                                    "--set", "events.pairs=3", "--set", "threshold_map=true",
+                                    "--set", "threshold_map.weights=posterior", "--set", "hdr=true",
+                                    "--set", "sh_interval=4", "--set", "edi_prior.weight=0.02", "--set",
+                                    "blur.subposes=7", "--set", "blur.subpose_px=0.5"],
+                                   ["--set", "hdr=true", "--set", "response=true", "--set", "events.pairs=2",
+                                    "--set", "events.frame_noise=2.5"],
+                                   pytest.param(["--refine-poses", "--set", "blur.subposes=9", "--set",
+                                                 "blur.subpose_px=0.5"], marks=pytest.mark.slow)])
 def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, capsys):
     run = tmp_path / "run"
-    assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--init-points", "300",
+    assert cli.main(["train", scene_path, "--out", str(run), "--iterations", "12", "--set", "init_points=300",
                      "--threads", "1", "--quiet", *flags]) == 0
     assert cli.main(["eval", str(run)]) == 0
     assert "PSNR" in capsys.readouterr().out
@@ -360,11 +363,11 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     assert {"test", "train_sharp", "blurry_input"} <= set(m)
     saved = json.loads((run / "config.json").read_text())
     # --sh-interval auto at 12 steps: every 12 / 30 steps, at least 1
-    assert saved["hdr"] == ("--hdr" in flags) and saved["sh_interval"] == (4 if "--sh-interval" in flags else 1)
-    assert saved["edi_prior"] == (0.02 if "--edi-prior" in flags else 0.0)
-    assert saved["subpose_px"] == (0.5 if "--subpose-px" in flags else 0.0)
-    assert saved["learn_response"] == ("--learn-response" in flags)
-    assert saved["frame_noise"] == (2.5 if "--frame-noise" in flags else None)
+    assert saved["hdr"] == ("hdr=true" in flags) and saved["sh_interval"] == (4 if "sh_interval=4" in flags else 1)
+    assert saved["edi_prior"] == (0.02 if "edi_prior.weight=0.02" in flags else 0.0)
+    assert saved["subpose_px"] == (0.5 if "blur.subpose_px=0.5" in flags else 0.0)
+    assert saved["learn_response"] == ("response=true" in flags)
+    assert saved["frame_noise"] == (2.5 if "events.frame_noise=2.5" in flags else None)
     assert (run / "trajectory.npz").exists() == ("--refine-poses" in flags)
     assert cli.main(["export", str(run), "--ply", str(tmp_path / "m.ply")]) == 0
     assert len(load_ply(tmp_path / "m.ply")) > 0
@@ -374,23 +377,25 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
 
 @pytest.mark.parametrize("args,match", [
     (["train", "/nonexistent.h5", "--out", "X"], "no such file"),
-    (["train", "SCENE", "--out", "X", "--subposes", "0"], "subposes"),
+    (["train", "SCENE", "--out", "X", "--set", "blur.subposes=0"], "subposes"),
     (["train", "SCENE", "--out", "X", "--iterations", "0"], "iterations"),
-    (["train", "SCENE", "--out", "X", "--event-pairs", "11"], "event-pairs"),
-    (["train", "SCENE", "--out", "X", "--sh-interval", "0"], "sh-interval"),
-    (["train", "SCENE", "--out", "X", "--sh-interval", "fast"], "sh-interval: expected auto or an integer"),
-    (["train", "SCENE", "--out", "X", "--hdr", "--blur-space", "srgb"], "hdr needs the linear-light"),
-    (["train", "SCENE", "--out", "X", "--edi-anneal", "0"], "edi-anneal"),
-    (["train", "SCENE", "--out", "X", "--learn-response", "--naive"], "learn-response needs the blur model"),
-    (["train", "SCENE", "--out", "X", "--subpose-px", "-1"], "subpose-px must be a number >= 0"),
-    (["train", "SCENE", "--out", "X", "--frame-noise", "-1"], "frame-noise must be auto or a sigma"),
-    (["train", "SCENE", "--out", "X", "--edi-prior", "0.1", "--no-event-loss"], "edi-prior needs the event loss"),
-    (["train", "SCENE", "--out", "X", "--device", "cuda"], "CUDA|cuda"),
+    (["train", "SCENE", "--out", "X", "--set", "events.pairs=11"], "events.pairs"),
+    (["train", "SCENE", "--out", "X", "--set", "sh_interval=0"], "sh_interval"),
+    (["train", "SCENE", "--out", "X", "--set", "sh_interval=fast"], 'sh_interval: expected "auto" or an integer'),
+    (["train", "SCENE", "--out", "X", "--set", "hdr=true", "--set", "blur.space=srgb"], "hdr.*needs the linear-light"),
+    (["train", "SCENE", "--out", "X", "--set", "edi_prior.anneal=0"], "edi_prior.anneal"),
+    (["train", "SCENE", "--out", "X", "--set", "response=true", "--naive"], "response.*needs the blur model"),
+    (["train", "SCENE", "--out", "X", "--set", "blur.subpose_px=-1"], "blur.subpose_px must be a number >= 0"),
+    (["train", "SCENE", "--out", "X", "--set", "events.frame_noise=-1"], "events.frame_noise must be auto or a sigma"),
+    (["train", "SCENE", "--out", "X", "--set", "edi_prior.weight=0.1", "--no-event-loss"],
+     "edi_prior.weight needs the event loss"),
+    (["train", "SCENE", "--out", "X", "--set", "device=cuda"], "CUDA|cuda"),
+    (["train", "SCENE", "--out", "X", "--event-huber", "3"], "--set events.huber=VALUE"),
     (["train", "SCENE", "--out", "X", "--resume"], "no checkpoint"),
     (["eval", "/nonexistent_run"], "not a finished training run"),
 ])
 def test_bad_input_is_one_line_exit_2(scene_path, tmp_path, capsys, args, match):
-    if "--device" in args and torch.cuda.is_available():
+    if "device=cuda" in args and torch.cuda.is_available():
         pytest.skip("CUDA present")
     args = [a.replace("SCENE", scene_path).replace("X", str(tmp_path / "r")) for a in args]
     assert exit_code(cli.main, args) == 2   # also argparse's own refusals (a value its type rejects)

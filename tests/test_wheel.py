@@ -199,7 +199,7 @@ def _chain(cli, work, scene, tag, full=False):
     """train 20 steps -> eval -> export-dataset -> view figure, run from a folder other than the run's; `full`:
     render, export, info, validate and ingest e2nerf of the export too."""
     run = f"{tag}/run"
-    cli("ev3dgs", "train", scene, "--out", run, "--iterations", "20", "--init-points", "2000", "--quiet")
+    cli("ev3dgs", "train", scene, "--out", run, "--iterations", "20", "--set", "init_points=2000", "--quiet")
     elsewhere = work / f"{tag}-elsewhere"
     elsewhere.mkdir()
     cli("ev3dgs", "eval", work / run, "--quiet", cwd=elsewhere)

@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..train.config import DENSIFY_FROM, EVENT_WEIGHTS, FLOOR_STATS, MAP_WEIGHTS
 from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 
@@ -19,30 +18,23 @@ def _need_backend(backend: str) -> None:
             raise Ev3dgsError("--backend cuda needs gsplat, which is not installed: pip install ev3dgs[cuda]")
 
 
-def _check_train(args) -> None:
+def _check_train(args, cfg) -> None:
     """Before loading anything: the run folder can take model.pt and checkpoints, holds no earlier run (unless
     --resume or --force), and the backend exists."""
     from ..outputs import OutputError, check_output_dir, remove_stale_temps
     from ..train.trainer import holds_run
 
-    if args.resume and args.force:
-        raise OutputError("--resume continues the run in --out, --force replaces it: give one")
-    if args.map_weights != "prior" and not args.threshold_map and not args.resume:
-        from ..errors import ConfigError
-
-        raise ConfigError(f"--map-weights {args.map_weights} weighs the events by a threshold map: give "
-                          "--threshold-map too")
-    _need_backend(args.backend)
+    _need_backend(cfg.backend)
     if not args.resume and not args.force and holds_run(args.out):
         import errno
 
         raise OutputError(f"--out {args.out} holds a training run already; pass --resume to continue it or "
                           "--force to start a new one (its model, checkpoint, log and metrics are removed)",
                           errno.EEXIST)
-    per_gaussian = 4 * (3 + 4 + 3 + 1 + 3 * (args.sh_degree + 1) ** 2)  # float32 parameters
+    per_gaussian = 4 * (3 + 4 + 3 + 1 + 3 * (cfg.sh_degree + 1) ** 2)  # float32 parameters
     # ckpt.pt (parameters + 2 Adam moments), its temporary while it replaces the old one, model.pt
-    check_output_dir(args.out, 7 * per_gaussian * max(1, args.init_points))
-    for name in ("ckpt.pt", "model.pt", "config.json"):
+    check_output_dir(args.out, 7 * per_gaussian * max(1, cfg.init_points))
+    for name in ("ckpt.pt", "model.pt", "config.json", "config.toml"):
         remove_stale_temps(args.out, name)
     import warnings
 
@@ -66,7 +58,16 @@ def _record_given(sub) -> None:
     parse = sub.parse_known_args
 
     def parse_known_args(args=None, namespace=None):
-        opts = [a for a in sub._actions if a.option_strings and a.default is not argparse.SUPPRESS]
+        opts = [a for a in sub._actions if a.option_strings and a.default is not argparse.SUPPRESS
+                and not isinstance(a, argparse._AppendAction)]   # --set: its own list, None when not given
+        from ..train.layout import former_flag_message
+
+        for a in args or ():   # a flag that became a config key: say which, in one line
+            hint = former_flag_message(a) if isinstance(a, str) and a.startswith("--") else None
+            if hint is not None:
+                from ..errors import ConfigError
+
+                raise ConfigError(hint)
         namespace = argparse.Namespace() if namespace is None else namespace
         for a in opts:
             if not hasattr(namespace, a.dest):
@@ -82,51 +83,72 @@ def _record_given(sub) -> None:
     sub.parse_known_args = parse_known_args
 
 
-def _auto_or(parse, expected: str):
-    """An argparse type for an option whose value is "auto" (None: the trainer chooses) or ``parse(text)``."""
-    def convert(text: str):
-        if text == "auto":
-            return None
-        try:
-            return parse(text)
-        except (ValueError, argparse.ArgumentTypeError):
-            raise argparse.ArgumentTypeError(f"expected auto or {expected}, got {text!r}") from None
-    return convert
+# the command-line options of `ev3dgs train` that set a train.toml key: dest -> (key, value from args)
+_TRAIN_FLAGS = {"iterations": ("iterations", lambda a: a.iterations), "seed": ("seed", lambda a: a.seed),
+                "threads": ("threads", lambda a: a.threads), "backend": ("backend", lambda a: a.backend),
+                "naive": ("naive", lambda a: a.naive), "oracle": ("oracle", lambda a: a.oracle)}
 
 
-_frame_noise = _auto_or(finite_float, "a number")   # --frame-noise: auto = estimated from the frames
-_sh_interval = _auto_or(int, "an integer")          # --sh-interval: auto = scaled to --iterations
+def train_settings(args) -> tuple[dict, set]:
+    """(train.toml dict, TrainConfig fields the command line gave): --config (or the defaults), the options,
+    then every --set."""
+    import os
+
+    from ..config import load_toml
+    from ..train.config import TrainConfig
+    from ..train.layout import FIELD_KEY, LAYOUT, SWITCHES, apply_set, parse_set
+
+    given = set(getattr(args, "given_options", set()))
+    data = load_toml(args.config) if args.config else TrainConfig.default_toml()
+    fields = {"scene"}
+    if args.config:   # every setting the file holds, and the switches of the terms it leaves out
+        fields |= {f for t, keys in LAYOUT.items() for k, f in keys.items()
+                   if (k in data if not t else k in data.get(t, {}))}
+        fields |= set(SWITCHES.values()) | {"edi_prior"}
+    data["scene"] = os.path.abspath(args.scene)
+    for dest, (key, value) in _TRAIN_FLAGS.items():
+        if dest in given:
+            data[key] = value(args)
+            fields.add(key)
+    if "backend" in given and args.backend in ("cpu", "cuda"):   # --backend cpu/cuda: the device too
+        data["device"] = args.backend
+        fields.add("device")
+    if args.no_event_loss:
+        data.pop("events", None)
+        fields.add("event_loss")
+    if args.refine_poses:
+        data.setdefault("poses", {})
+        fields.add("refine_poses")
+    data = apply_set(data, args.set or [])
+    field_of = {key: f for f, key in FIELD_KEY.items()}
+    for item in args.set or []:
+        path, _ = parse_set(item)
+        fields.add(field_of.get(".".join(path), field_of.get(path[0], path[0])))
+    return data, fields
 
 
 def _train(args) -> int:
-    _check_train(args)
     from ..train.config import TrainConfig, resume_config
+    from ..train.layout import view_settings
     from ..train.trainer import Trainer
 
-    import os
+    if args.resume and args.force:
+        from ..outputs import OutputError
 
-    opts = dict(
-        scene=os.path.abspath(args.scene), iterations=args.iterations, subposes=args.subposes,
-        subpose_px=args.subpose_px, event_weight=args.event_weight,
-        event_norm=args.event_norm, event_mismatch=args.event_mismatch,
-        event_pairs=args.event_pairs, event_floor=args.event_floor, event_huber=args.event_huber,
-        densify_from=args.densify_from, frame_noise=args.frame_noise, naive=args.naive,
-        event_loss=not args.no_event_loss,
-        blur_space=args.blur_space, event_domain=args.event_domain, oracle=args.oracle,
-        learn_thresholds=args.learn_thresholds, threshold_map=args.threshold_map, map_weights=args.map_weights,
-        hdr=args.hdr,
-        learn_response=args.learn_response,
-        edi_prior=args.edi_prior, edi_anneal=args.edi_anneal, sh_degree=args.sh_degree, sh_interval=args.sh_interval,
-        init_points=args.init_points, checkpoint_every=args.checkpoint_every, seed=args.seed,
-        device=args.device, threads=args.threads, backend=args.backend,
-        refine_poses=args.refine_poses, pose_lr=args.pose_lr, pose_lr_final=args.pose_lr_final,
-        pose_start=args.pose_start, pose_warmup=args.pose_warmup, pose_max_rotation=args.pose_max_rotation,
-        pose_max_translation=args.pose_max_translation, pose_gauge=args.pose_gauge, pose_frame=args.pose_frame)
+        raise OutputError("--resume continues the run in --out, --force replaces it: give one")
+    data, given = train_settings(args)
+    cfg = TrainConfig.from_toml(data)
     if args.resume:  # the run's saved settings, with only what the command line gave on top (checked there)
-        given = {"scene"} | {{"no_event_loss": "event_loss"}.get(d, d) for d in getattr(args, "given_options", opts)}
-        cfg = resume_config(args.out, opts, given)
-    else:
-        cfg = TrainConfig(**opts)
+        from dataclasses import asdict
+
+        cfg = resume_config(args.out, asdict(cfg), given)
+    _check_train(args, cfg)
+    view = {"every": 100, "host": None, "port": None, **view_settings(data)}
+    args.view_every = view["every"]
+    if view["host"] is not None:
+        args.view_host = view["host"]
+    if view["port"] is not None:
+        args.view_port = view["port"]
     from ..view.live import live_view
 
     with live_view(args, cfg) as on_step:  # None without --view
@@ -134,7 +156,8 @@ def _train(args) -> int:
         rec = trainer.fit(resume=args.resume, on_step=on_step)
     if not args.quiet:
         print(f"trained {rec.get('step', trainer.step)} steps: loss {rec.get('loss', float('nan')):.5f}, "
-              f"{len(trainer.model)} Gaussians -> {args.out} (model.pt, ckpt.pt, log.jsonl, training.png)")
+              f"{len(trainer.model)} Gaussians -> {args.out} (model.pt, ckpt.pt, log.jsonl, config.toml, "
+              "training.png)")
     return 0
 
 
@@ -274,6 +297,12 @@ def _add_other_scene(p, verb: str) -> None:
                         "size or creation time differs; default: off, such a file is refused)")
 
 
+def _VIEW_DEFAULTS():
+    from ..view.command import DEFAULT_HOST, DEFAULT_PORT
+
+    return DEFAULT_HOST, DEFAULT_PORT
+
+
 def build_parser():
     p = parser("ev3dgs", "Event-enhanced 3D Gaussian Splatting: train, evaluate, render, export.")
     sub = subparsers(p)
@@ -282,146 +311,44 @@ def build_parser():
     t.add_argument("--out", required=True, help="run folder (created if missing; model.pt, ckpt.pt, log.jsonl, "
                                                 "config.json, training.png go there); a folder that holds a run "
                                                 "already is refused unless --resume or --force")
+    t.add_argument("--config", metavar="TOML",
+                   help="settings file (train.toml): core settings at the top, one table per term ([blur], "
+                        "[events], [poses], [edi_prior], [threshold_map], [hdr], [response], [densify], [view]); "
+                        "a term whose table is absent is off; see docs/trainer.md (default: the built-in "
+                        "settings, blur + event losses)")
+    t.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override one setting of the config, e.g. --set events.huber=3 or --set init_points=5000 "
+                        "(a TOML value; a key of an absent term's table turns that term on); repeatable")
     t.add_argument("--iterations", type=int, default=3000, help="optimisation steps (default %(default)s)")
-    t.add_argument("--subposes", type=int, default=5,
-                   help="renders across each exposure, b+1; with --subpose-px the most a view gets "
+    t.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    t.add_argument("--backend", choices=("auto", "reference", "cpu", "cuda"), default="auto",
+                   help="rasterizer and device: reference (plain torch), cpu (numba, on the CPU), cuda (gsplat on "
+                        "the GPU, needs ev3dgs[cuda]); auto = cuda when a GPU and gsplat are there, else cpu "
                         "(default %(default)s)")
-    t.add_argument("--subpose-px", type=finite_float, default=0.0, metavar="P",
-                   help="give each view the fewest renders (2 to --subposes) that lie at most P pixels apart "
-                        "along its exposure's largest image motion (measured from the scene's poses and "
-                        "points or bounds), so views that move more get more sub-poses "
-                        "(default %(default)s: every view gets --subposes)")
-    t.add_argument("--event-weight", type=finite_float, default=None,
-                   help="omega, the weight of the event loss (default: the event norm's, "
-                        f"{EVENT_WEIGHTS['noise']:g} for noise, 1/625 for count)")
-    t.add_argument("--event-norm", choices=tuple(EVENT_WEIGHTS), default="noise",
-                   help="noise: each event residual over its expected error (quantisation, threshold mismatch, "
-                        "noise events and the model's own error), so finer thresholds never let the event term "
-                        "swamp the blur loss; count: the residual in events, as E2NeRF/Ev3DGS "
-                        "(default %(default)s)")
-    t.add_argument("--event-mismatch", type=finite_float, default=None,
-                   help="pixel-to-pixel threshold spread relative to the threshold, for --event-norm noise "
-                        "(default: the scene's simulated value, or 0.1 for recordings)")
-    t.add_argument("--event-pairs", type=int, default=0,
-                   help="random pairs of sub-pose renders per step for the event loss, 0 = all pairs; a view "
-                        "with fewer pairs (--subpose-px) uses all of them (default %(default)s)")
-    t.add_argument("--event-floor", choices=FLOOR_STATS, default=None,
-                   help="--event-norm noise: the model's own error, which caps every pixel-pair's weight: the "
-                        "mean or the median of the pixel-pairs' squared residual beyond the counts' noise, or "
-                        "chi2, the error at which their (--event-huber penalised) chi-square averages what the "
-                        "noise model expects; the mean is set by the few pixels the model cannot render "
-                        "(default chi2; the count norm has no floor)")
-    t.add_argument("--event-huber", type=finite_float, default=None, metavar="C",
-                   help="--event-norm noise: event residuals beyond C standard deviations pull linearly, not "
-                        "quadratically (a Huber penalty); 0 = off (default 3; the count norm has none)")
-    t.add_argument("--densify-from", choices=DENSIFY_FROM, default=None,
-                   help="which loss's gradient decides where Gaussians are split and cloned: all of it, or the "
-                        "blur term alone, so the event term's weight does not (one more backward pass through "
-                        "the blur term per densifying step) (default blur under --event-norm noise, all under "
-                        "count)")
-    t.add_argument("--frame-noise", type=_frame_noise, default="auto", metavar="auto|SIGMA",
-                   help="the blurry frames' noise, sigma in 8-bit levels: as the blur loss's error comes down to "
-                        "that noise, which no model should fit, the event loss weighs up to 16 times more; 0 "
-                        "turns it off (default %(default)s: estimated from the frames, 0 for clean ones)")
+    t.add_argument("--threads", type=int, help="CPU threads for torch (default: torch's choice, all cores)")
     t.add_argument("--naive", action="store_true",
                    help="ablation: plain 3DGS on the blurry frame at the mid pose (default: off)")
     t.add_argument("--no-event-loss", action="store_true",
-                   help="ablation: blur loss only (default: off, the event loss is used)")
-    t.add_argument("--blur-space", choices=("auto", "srgb", "linear"), default="auto",
-                   help="where the sub-pose renders are averaged into the blurry image: srgb (stored) values or "
-                        "linear intensity; auto: from the scene's /train transfer, linear for sRGB images of "
-                        "linear-light blur, srgb for display/linear ones (default %(default)s)")
-    t.add_argument("--event-domain", choices=("auto", "linear", "display"), default="auto",
-                   help="what the event pixels' log is taken of: linear light or display values (v2e-made "
-                        "events, E2NeRF); auto: from the scene's /train transfer (default %(default)s)")
+                   help="ablation: blur loss only, the [events] table dropped (default: off, the event loss is "
+                        "used)")
     t.add_argument("--oracle", action="store_true",
                    help="the evaluation's upper bound: plain 3DGS on the sharp frames (/train/sharp) at their "
                         "poses, no blur model, no events (default: off)")
-    t.add_argument("--learn-thresholds", action="store_true",
-                   help="optimise the ON/OFF contrast thresholds (log intensity) with the model "
-                        "(default: off, the scene file's thresholds are kept fixed)")
-    t.add_argument("--threshold-map", action="store_true",
-                   help="estimate each pixel's ON and OFF thresholds (the sensor's fixed-pattern mismatch) "
-                        "from the events as the model fits, with the scene's mismatch or --event-mismatch as "
-                        "prior; for sensors with a large pixel-to-pixel spread; noise norm only; no effect "
-                        "where the mismatch is 0 (default: off)")
-    t.add_argument("--map-weights", choices=MAP_WEIGHTS, default="prior",
-                   help="with --threshold-map, how the events are weighed: prior = by the mismatch the map "
-                        "started from, as without a map (only the thresholds change); posterior = by each "
-                        "pixel's remaining threshold error after the fit, ON and OFF independently "
-                        "(default %(default)s)")
-    t.add_argument("--hdr", action="store_true",
-                   help="let the model hold radiance above the frame's full scale (specular highlights, lamps): "
-                        "renders above 1 decode to up to 10^4 x full scale, the blurry frame is modelled as "
-                        "the exposure's integral clipped by the sensor, and the sharp renders clip at 1; "
-                        "linear-light blur model only (default: off)")
-    t.add_argument("--learn-response", action="store_true",
-                   help="learn the camera's response (a monotone curve before the sRGB decode, 16 segments, "
-                        "starting at plain sRGB) from how the blurry frames and the events agree: for frames "
-                        "with a tone curve the scene does not declare; linear-light blur model with sRGB "
-                        "frames only; the curve is written to RUN/response.json (default: off)")
-    t.add_argument("--edi-prior", type=finite_float, default=0.0, metavar="W",
-                   help="add the event double integral prior with weight W (per unit of chi-square, like "
-                        "--event-weight under the noise norm): each sub-pose render is pulled towards the sharp "
-                        "frame the blurry frame and the exposure's events give (EDI), weighted by that "
-                        "target's expected error, saturated pixels left out; noise norm only (default %(default)s: off)")
-    t.add_argument("--edi-anneal", type=finite_float, default=0.5, metavar="F",
-                   help="the EDI prior's weight falls linearly to 0 at this fraction of --iterations "
-                        "(default %(default)s)")
     t.add_argument("--refine-poses", action="store_true",
-                   help="learn per-view SE(3) corrections of each exposure's trajectory (start and end, "
-                        "interpolated over the sub-poses) with the model; saves RUN/trajectory.npz, which eval "
-                        "uses (default: off, the scene's poses are kept)")
-    t.add_argument("--pose-lr", type=finite_float, default=1e-3,
-                   help="Adam learning rate of the pose corrections, in radians and scene-scale units per "
-                        "step (default %(default)s)")
-    t.add_argument("--pose-lr-final", type=finite_float, default=0.01,
-                   help="the pose learning rate decays exponentially to --pose-lr times this at the last step "
-                        "(default %(default)s)")
-    t.add_argument("--pose-start", type=int, default=100,
-                   help="steps before the poses start moving (default %(default)s)")
-    t.add_argument("--pose-warmup", type=int, default=100,
-                   help="steps of linear warm-up of the pose learning rate after --pose-start "
-                        "(default %(default)s)")
-    t.add_argument("--pose-max-rotation", type=finite_float, default=5.0,
-                   help="divergence guard: each correction's rotation is clamped to this, in degrees "
-                        "(default %(default)s)")
-    t.add_argument("--pose-max-translation", type=finite_float, default=0.1,
-                   help="divergence guard: each correction's translation is clamped to this fraction of the "
-                        "scene scale (1.1 x the largest camera distance from the cameras' centre; default "
-                        "%(default)s)")
-    t.add_argument("--pose-gauge", choices=("similarity", "none"), default="similarity",
-                   help="similarity: remove the corrections' common rotation, translation and scale after every "
-                        "update (the losses cannot see them); none: keep them (default %(default)s)")
-    t.add_argument("--pose-frame", choices=("world", "camera"), default="world",
-                   help="axes of the corrections: world, or camera (each view's own mid-exposure camera axes, "
-                        "z the optical axis: the roll gets its own Adam scale) (default %(default)s)")
-    t.add_argument("--sh-degree", type=int, default=3, help="spherical-harmonics degree of the colours, 0-3 "
-                                                           "(default %(default)s)")
-    t.add_argument("--sh-interval", type=_sh_interval, default="auto", metavar="auto|N",
-                   help="raise the active spherical-harmonics degree by one every N steps, up to --sh-degree; "
-                        "auto: the 3DGS schedule (every 1000 of 30 000 steps) scaled to --iterations, every "
-                        "--iterations / 30 steps (default %(default)s)")
-    t.add_argument("--init-points", type=int, default=20000,
-                   help="random initial Gaussians inside the scene bounds when the file has no /points "
-                        "(default %(default)s)")
-    t.add_argument("--checkpoint-every", type=int, default=500,
-                   help="write RUN/ckpt.pt every this many steps (default %(default)s)")
-    t.add_argument("--resume", action="store_true", help="continue from RUN/ckpt.pt (default: off)")
-    t.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
-                   help="torch device; auto = cuda when available (default %(default)s)")
-    t.add_argument("--backend", choices=("auto", "reference", "cpu", "cuda"), default="auto",
-                   help="rasterizer: reference (plain torch), cpu (numba), cuda (gsplat, needs ev3dgs[cuda]); "
-                        "auto = cuda for CUDA tensors when gsplat is installed, else cpu (default %(default)s)")
-    t.add_argument("--threads", type=int, help="CPU threads for torch (default: torch's choice, all cores)")
-    t.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+                   help="learn per-view SE(3) corrections of each exposure's trajectory with the model ([poses] "
+                        "table); saves RUN/trajectory.npz, which eval uses (default: off, the scene's poses "
+                        "are kept)")
+    t.add_argument("--resume", action="store_true",
+                   help="continue from RUN/ckpt.pt with the run's settings (RUN/config.toml); only --iterations "
+                        "(the schedules keep the run's original length), checkpoint_every and --threads may "
+                        "change (default: off)")
     add_output_options(t, force_help="start a new run in a --out folder that holds one: the old run's model.pt, "
                                      "ckpt.pt, log.jsonl, metrics.json, eval images, trajectory.npz and "
                                      "training.png are removed, other files kept (default: off, refused)")
-    from ..view.command import add_train_options
-
-    add_train_options(t)  # --view, --view-every, --view-host, --view-port
-    t.set_defaults(func=_train)
+    t.add_argument("--view", action="store_true",
+                   help="show the training in the browser viewer (viser, ev3dgs[view]), updated every view.every "
+                        "steps ([view] every, host, port in the config) (default: off)")
+    t.set_defaults(func=_train, view_every=100, view_host=_VIEW_DEFAULTS()[0], view_port=_VIEW_DEFAULTS()[1])
     _record_given(t)
     e = sub.add_parser("eval", help="PSNR/SSIM (and LPIPS with --lpips) on sharp novel and deblurred training "
                                     "views -> metrics.json")

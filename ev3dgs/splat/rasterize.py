@@ -11,8 +11,10 @@ the projected `means2d` (whose .grad feeds densification), `radii`, `depths`, `w
 Batched: viewmat (C,4,4) renders C cameras at once: image (C,H,W,D), alpha (C,H,W,1), meta means2d (C,N,2),
 radii/depths (C,N), n_cameras C. On "cpu" that is one numba projection + SH kernel for all cameras
 (project_cpu.py, hand-written backward), one binning pass and one rasterizer kernel over (camera, tile); each
-camera's image and gradients are bitwise those of its own single-camera call. Other backends loop over the
-cameras (their stacked meta["means2d"] then carries no gradient: render per camera for densification).
+camera's image and gradients are bitwise those of its own single-camera call. "reference" loops over the
+cameras inside the call, rasterizing each from its slice of one stacked (C,N,2) means2d; a backend without a
+batched call loops over single-camera calls and hooks each camera's gradient into the stacked means2d. On
+every backend, after backward, meta["means2d"].grad holds every camera's screen-space gradient (C,N,2).
 
 Backends: "reference" (plain torch, the test oracle), "cpu" (numba kernels, exact), "cuda" (gsplat, when
 CUDA and gsplat are available), "auto" (cuda for CUDA tensors when possible, else cpu). Every backend
@@ -73,14 +75,14 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
     if backend == "cpu" and not (K.requires_grad or means.is_cuda):
         return _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree,
                                   near_plane, far_plane, eps2d, background, render_mode, threads)
-    if viewmat.ndim == 3:  # one camera at a time, stacked (the oracle for the batched cpu path)
-        outs = [rasterization(means, quats, scales, opacities, colors, v, K, width, height, sh_degree=sh_degree,
-                              near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, background=background,
-                              render_mode=render_mode, backend=backend, threads=threads) for v in viewmat]
-        meta = {k: (torch.stack([o[2][k] for o in outs]) if torch.is_tensor(outs[0][2][k]) else outs[0][2][k])
-                for k in outs[0][2]}
-        meta["n_cameras"] = len(outs)
-        return torch.stack([o[0] for o in outs]), torch.stack([o[1] for o in outs]), meta
+    if viewmat.ndim == 3:  # one camera at a time inside this call (the oracle for the batched cpu path)
+        kw = dict(sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
+                  background=background, render_mode=render_mode)
+        if backend == "reference":
+            return _rasterization_reference_batched(means, quats, scales, opacities, colors, viewmat, K, width,
+                                                    height, **kw)
+        return _rasterization_loop(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                   backend=backend, threads=threads, **kw)
     if backend == "cuda":
         from .cuda import rasterization_cuda
 
@@ -110,6 +112,67 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
     meta = {"means2d": proj.means2d, "radii": proj.radii, "depths": proj.depths, "conics": proj.conics,
             "width": width, "height": height, "n_cameras": 1}
     return image, alpha, meta
+
+
+def _rasterization_reference_batched(means, quats, scales, opacities, colors, viewmats, K, width, height, *,
+                                     sh_degree, near_plane, far_plane, eps2d, background, render_mode):
+    """C cameras on the reference backend: each camera projected, the screen-space means stacked into one
+    (C, N, 2) tensor and each camera rasterized from its slice of it, so that meta["means2d"] carries every
+    camera's screen-space gradient after backward (retain_grad it), as the batched cpu and cuda backends'."""
+    from .reference import rasterize_reference
+
+    projs = [project_gaussians(means, quats, scales, opacities, v, K, width, height, near=near_plane,
+                               far=far_plane, eps2d=eps2d) for v in viewmats]
+    means2d = torch.stack([p.means2d for p in projs])
+    images, alphas = [], []
+    for c, (v, proj) in enumerate(zip(viewmats, projs)):
+        cols = colors
+        if colors.ndim == 3:
+            campos = torch.linalg.inv(v)[:3, 3]
+            cols = eval_sh(sh_degree, colors, means - campos)
+        bg = background
+        if bg is None:
+            bg = torch.zeros(cols.shape[1], dtype=cols.dtype, device=cols.device)
+        if render_mode == "RGB+D":
+            cols = torch.cat([cols, proj.depths[:, None].to(cols.dtype)], dim=1)
+            bg = torch.cat([bg, bg.new_zeros(1)])
+        image, alpha = rasterize_reference(means2d[c], proj.conics, cols, opacities, proj.depths, proj.radii,
+                                           width, height, bg)
+        images.append(image)
+        alphas.append(alpha)
+    meta = {"means2d": means2d, "radii": torch.stack([p.radii for p in projs]),
+            "depths": torch.stack([p.depths for p in projs]), "conics": torch.stack([p.conics for p in projs]),
+            "width": width, "height": height, "n_cameras": len(projs)}
+    return torch.stack(images), torch.stack(alphas), meta
+
+
+def _rasterization_loop(means, quats, scales, opacities, colors, viewmats, K, width, height, *, backend,
+                        threads, **kw):
+    """C cameras through C single-camera calls (the cuda backend where it has no batched call). The stacked
+    meta["means2d"] (C, N, 2) is not in the autograd graph, so each camera's means2d passes its gradient to
+    it with a hook: after a backward pass meta["means2d"].grad holds every camera's screen-space gradient.
+    ``meta["means2d_parts"]``: the per-camera tensors (autograd.grad of a single term's loss goes through
+    them)."""
+    outs = [rasterization(means, quats, scales, opacities, colors, v, K, width, height, backend=backend,
+                          threads=threads, **kw) for v in viewmats]
+    meta = {k: (torch.stack([o[2][k] for o in outs]) if torch.is_tensor(outs[0][2][k]) else outs[0][2][k])
+            for k in outs[0][2]}
+    parts = [o[2]["means2d"] for o in outs]
+    stacked = meta["means2d"] = torch.stack([p.detach() for p in parts])
+    if any(p.requires_grad for p in parts):
+        def keep(c):
+            def hook(grad):
+                if stacked.grad is None:
+                    stacked.grad = torch.zeros_like(stacked)
+                stacked.grad[c] = grad
+            return hook
+
+        for c, p in enumerate(parts):
+            if p.requires_grad:
+                p.register_hook(keep(c))
+        meta["means2d_parts"] = parts
+    meta["n_cameras"] = len(outs)
+    return torch.stack([o[0] for o in outs]), torch.stack([o[1] for o in outs]), meta
 
 
 def _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, near_plane,

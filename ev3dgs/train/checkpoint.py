@@ -14,8 +14,7 @@ from ..config import from_dict
 from ..errors import ConfigError, InputError
 from .config import RESUMABLE_CHANGES, TrainConfig, mismatch_error, with_legacy_values
 
-REQUIRED_KEYS = ("step", "model", "optimizers", "strategy_state", "strategy_rng", "rng", "view_queue",
-                 "thresholds", "threshold_opt")
+REQUIRED_KEYS = ("step", "model", "optimizers", "strategy_state", "strategy_rng", "rng", "view_queue")
 
 
 def scene_fingerprint(data) -> dict:
@@ -24,6 +23,8 @@ def scene_fingerprint(data) -> dict:
 
 
 def save_checkpoint(path: Path, trainer) -> None:
+    """The core's state, then every term's (terms.Term.save: each under the keys it has always used, so
+    checkpoints of runs made before the terms existed still load)."""
     strat_gen = trainer.strategy._gen
     payload = {
         "step": trainer.step,
@@ -31,20 +32,14 @@ def save_checkpoint(path: Path, trainer) -> None:
         "optimizers": {k: o.state_dict() for k, o in trainer.optimizers.items()},
         "strategy_state": {k: v.clone() for k, v in trainer.strategy_state.items()},
         "strategy_rng": None if strat_gen is None else strat_gen.get_state(),
-        "rng": {"views": trainer.generator.get_state(), "pairs": trainer.pair_generator.get_state()},
+        "rng": {"views": trainer.generator.get_state()},
         "view_queue": list(trainer.view_queue),
-        "thresholds": {k: v.detach().clone() for k, v in trainer.thresholds.items()},
-        "threshold_opt": None if trainer.threshold_opt is None else trainer.threshold_opt.state_dict(),
         "config": asdict(trainer.cfg),
         "scene": scene_fingerprint(trainer.data),
-        "pose_refiner": None if getattr(trainer, "pose_refiner", None) is None else trainer.pose_refiner.state_dict(),
-        "event_floor": getattr(trainer, "event_floor", None),
-        "blur_mse": getattr(trainer, "blur_mse", None),
-        "threshold_map": (None if getattr(trainer, "threshold_map", None) is None
-                          else trainer.threshold_map.state_dict()),
-        "response": (None if getattr(trainer, "response", None) is None
-                     else {"curve": trainer.response.state_dict(), "opt": trainer.response_opt.state_dict()}),
+        "terms": [t.table for t in trainer.terms],
     }
+    for term in trainer.terms:
+        term.save(payload)
     from ..outputs import atomic_path
 
     with atomic_path(path) as tmp:  # a kill mid-write never leaves half a checkpoint under the final name
@@ -96,7 +91,7 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
         payload = read_checkpoint(path, trainer.device)
     check_compatible(path, payload, trainer.cfg, trainer.data)
     rng = payload["rng"]
-    if not (isinstance(rng, dict) and set(rng) == {"views", "pairs"}):
+    if not (isinstance(rng, dict) and "views" in rng):
         raise InputError(f"{path}: the checkpoint has one shared random stream (made before the view order and "
                          "event-pair draws were separated): it cannot be continued exactly; start the run again")
     try:
@@ -112,25 +107,7 @@ def load_checkpoint(path: Path, trainer, payload: dict | None = None) -> None:
         trainer.strategy._generator()
         trainer.strategy._gen.set_state(payload["strategy_rng"])
     trainer.generator.set_state(rng["views"])
-    trainer.pair_generator.set_state(rng["pairs"])
     trainer.view_queue = list(payload["view_queue"])
-    for k, v in payload["thresholds"].items():
-        trainer.thresholds[k].data.copy_(v)
-    if trainer.threshold_opt is not None and payload["threshold_opt"] is not None:
-        trainer.threshold_opt.load_state_dict(payload["threshold_opt"])
-    if getattr(trainer, "pose_refiner", None) is not None and payload.get("pose_refiner") is not None:
-        trainer.pose_refiner.load_state_dict(payload["pose_refiner"])
-    if getattr(trainer, "threshold_map", None) is not None:
-        if payload.get("threshold_map") is None:
-            raise InputError(f"{path}: the checkpoint has no threshold map to continue --threshold-map from")
-        trainer.threshold_map.load_state_dict(payload["threshold_map"])
-    if getattr(trainer, "response", None) is not None:
-        if payload.get("response") is None:
-            raise InputError(f"{path}: the checkpoint has no camera response to continue --learn-response from")
-        trainer.response.load_state_dict(payload["response"]["curve"])
-        trainer.response_opt.load_state_dict(payload["response"]["opt"])
-    floor = payload.get("event_floor")   # absent in checkpoints of the count norm, which has none
-    trainer.event_floor = None if floor is None else float(floor)
-    mse = payload.get("blur_mse")        # absent without --frame-noise and in older checkpoints
-    trainer.blur_mse = None if mse is None else float(mse)
+    for term in trainer.terms:
+        term.load(payload, path)
     trainer.step = int(payload["step"])

@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, fields, replace
+import re
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from ..config import check, from_dict
@@ -10,12 +11,36 @@ from ..errors import ConfigError
 
 # Options a resumed run may change: they do not change the trained model (extending the run, how often it is
 # saved, how many threads the rasterizer kernels use: results are bitwise the same for any thread count).
+# Extending a run (--iterations on --resume) keeps every schedule as the run started it: schedule_length
+# records the length the schedules were made for (learning-rate decays, densification, EDI anneal, pose
+# learning rate), and the steps past it run at the schedules' final values (docs/trainer.md, "Resuming").
 RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
 # keys added after runs were saved without them, with the value those runs used (not today's default)
 LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count", "frame_noise": 0.0, "map_weights": "posterior",
                  "event_floor": "mean", "event_huber": 0.0, "densify_from": "all"}
 # keys of config.json that record facts about the run, not settings (TrainConfig.load skips them)
 RECORD_KEYS = ("scene_file",)
+
+
+# the options `ev3dgs train` keeps on its command line; every other setting is a train.toml key (layout.py)
+CLI_FLAGS = ("--iterations", "--seed", "--backend", "--threads", "--naive", "--no-event-loss", "--oracle",
+             "--refine-poses")
+
+
+def keys_for_flags(message: str) -> str:
+    """A settings message with the former command-line flags it names written as train.toml keys
+    (``--event-huber`` -> ``events.huber``, ``--hdr`` -> ``[hdr]``); the flags train still has are kept."""
+    from .layout import FIELD_KEY, SWITCHES
+
+    names = {}
+    for fld, key in FIELD_KEY.items():
+        flag = "--" + fld.replace("_", "-")
+        if flag not in CLI_FLAGS:
+            names[flag] = f"[{key}]" if key in SWITCHES else key
+    names.update({"--learn-response": "[response]", "--edi-prior": "edi_prior.weight",
+                  "--threshold-map": "[threshold_map]"})
+    pattern = "|".join(re.escape(f) for f in sorted(names, key=len, reverse=True))
+    return re.sub(rf"({pattern})(?![a-z-])", lambda m: names[m.group(1)], message)
 
 
 def with_legacy_values(data: dict) -> dict:
@@ -36,8 +61,6 @@ DENSIFY_FROM = ("all", "blur")      # --densify-from
 # penalty and densifies from the whole loss, as E2NeRF / Ev3DGS
 NORM_DEFAULTS = {"noise": dict(event_floor="chi2", event_huber=3.0, densify_from="blur"),
                  "count": dict(event_floor="mean", event_huber=0.0, densify_from="all")}
-DEFAULT_REL_MISMATCH = 0.1   # sigma / theta assumed when the scene does not say (DAVIS346: a few hundredths
-                             # of thresholds 0.1-0.3)
 
 
 SH_STEPS_3DGS = (1000, 30000)   # 3DGS raises the SH degree every 1000 of its 30 000 steps
@@ -114,8 +137,17 @@ class TrainConfig:
     pose_max_translation: float = 0.1  # clamp of each correction's translation (fraction of the scene scale)
     pose_gauge: str = "similarity"    # remove the 7-dof similarity component of the corrections, or "none"
     pose_frame: str = "world"         # axes of the corrections: "world" or "camera" (the view's own, z = roll)
+    # the run length the schedules are made for; None = iterations (set when a resume extends the run)
+    schedule_length: int | None = None
+    terms: dict = field(default_factory=dict)   # settings of terms registered outside the package, by table
 
     def __post_init__(self):
+        try:
+            self._check()
+        except ConfigError as e:
+            raise ConfigError(keys_for_flags(str(e))) from None
+
+    def _check(self):
         check(self.iterations >= 1, "--iterations must be >= 1")
         check(1 <= self.subposes <= 64, "--subposes must be in [1, 64]")
         check(isinstance(self.subpose_px, (int, float)) and 0 <= self.subpose_px < float("inf"),
@@ -178,6 +210,13 @@ class TrainConfig:
         check(0 < self.pose_max_translation <= 10, "--pose-max-translation must be in (0, 10]")
         check(self.pose_gauge in ("similarity", "none"), "--pose-gauge must be similarity or none")
         check(self.pose_frame in ("world", "camera"), "--pose-frame must be world or camera")
+        check(self.schedule_length is None or self.schedule_length >= 1, "schedule_length must be >= 1")
+        check(isinstance(self.terms, dict), "terms must be a table of term tables")
+
+    @property
+    def schedule_iterations(self) -> int:
+        """The run length every schedule is scaled to (RESUMABLE_CHANGES: extending a run keeps it)."""
+        return self.schedule_length or self.iterations
 
     @property
     def uses_events(self) -> bool:
@@ -215,21 +254,79 @@ class TrainConfig:
             return "oracle"
         return "naive" if self.naive else ("blur+event" if self.uses_events else "blur-only")
 
+    # ------------------------------------------------------------------ train.toml
+    @staticmethod
+    def from_toml(data: dict) -> "TrainConfig":
+        """From a train.toml dict (layout.py: core keys at the top, one table per term); unknown keys and
+        wrong types are one-line ConfigErrors naming the dotted key."""
+        from .layout import flat_settings
+        from .terms import registered
+
+        return TrainConfig(**flat_settings(data, TrainConfig, registered()))
+
+    @staticmethod
+    def default_toml() -> dict:
+        """The train.toml dict of the built-in settings (blur + event losses; "auto" left unresolved)."""
+        from dataclasses import MISSING
+        from types import SimpleNamespace
+
+        from .layout import nested
+
+        values = {f.name: (f.default if f.default is not MISSING else
+                           f.default_factory() if f.default_factory is not MISSING else None)
+                  for f in fields(TrainConfig)}
+        return nested(SimpleNamespace(**values))
+
+    def to_toml(self) -> dict:
+        """The train.toml dict of these settings (every key written; "auto" where the trainer resolves it)."""
+        from .layout import nested
+
+        return nested(self)
+
+    def resolved_notes(self) -> dict:
+        """{dotted key: what "auto" resolves to} for the record in config.toml."""
+        notes = {"event_weight": f"{self.omega:g}", "event_floor": self.floor_stat,
+                 "event_huber": f"{self.huber_c:g}", "densify_from": self.densify_source,
+                 "frame_noise": "estimated from the frames", "event_mismatch": "from the scene's sensor model",
+                 "threads": "torch's choice"}
+        from .layout import FIELD_KEY
+
+        return {FIELD_KEY[k]: v for k, v in notes.items() if getattr(self, k) is None}
+
     def save(self, path: Path) -> None:
         """config.json: the settings, plus ``scene_file`` (run_scene.scene_record: the scene's path relative
         to the run folder, its absolute path, size and fingerprint), so the run finds its scene from any
-        folder and after being moved."""
+        folder and after being moved; and beside it config.toml, the same settings as a train.toml (the
+        run's record, read first by --resume; ``ev3dgs train SCENE --config RUN/config.toml`` repeats the
+        run)."""
+        from ..outputs import atomic_path
+        from .layout import dumps
         from .run_scene import scene_record
 
         path = Path(path)
         data = asdict(self)
         data["scene_file"] = scene_record(self.scene, path.parent)
-        path.write_text(json.dumps(data, indent=2))
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(data, indent=2))
+        with atomic_path(path.with_name("config.toml")) as tmp:
+            tmp.write_text("# the resolved settings of this run (ev3dgs train); see docs/trainer.md\n"
+                           + dumps(self.to_toml(), self.resolved_notes()))
 
     @staticmethod
     def load(path: Path) -> "TrainConfig":
-        """Read a run's config.json; a missing key, an unknown key or a value of the wrong type (e.g.
-        ``"iterations": "300"``) is a one-line ConfigError naming the file and the key."""
+        """Read a run's config.json (flat keys, older runs too) or a config.toml/train.toml; a missing key, an
+        unknown key or a value of the wrong type (e.g. ``"iterations": "300"``) is a one-line ConfigError naming
+        the file and the key."""
+        if Path(path).suffix == ".toml":
+            from ..config import load_toml
+
+            data = load_toml(path)
+            if "scene" not in data:
+                raise ConfigError(f"{path}: the run's config has no 'scene'")
+            try:
+                return TrainConfig.from_toml(data)
+            except ConfigError as e:
+                raise ConfigError(f"{path}: {e}") from None
         try:
             data = json.loads(Path(path).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
@@ -253,6 +350,8 @@ class TrainConfig:
         out = []
         for f in fields(self):
             a, b = getattr(self, f.name), getattr(other, f.name)
+            if f.name == "schedule_length":   # None means "the run's iterations": compare what the schedules use
+                a, b = self.schedule_iterations, other.schedule_iterations
             if f.name in ignore or a == b:
                 continue
             if f.name == "scene" and (Path(a).resolve() == Path(b).resolve() or same_scene_file(a, b)):
@@ -265,7 +364,8 @@ def mismatch_error(path, diffs: list[tuple]) -> ConfigError:
     """The one-line refusal of a resume whose settings differ from the saved run's."""
     listed = "; ".join(f"{k}: saved {a!r} vs given {b!r}" for k, a, b in diffs)
     return ConfigError(f"--resume: {path} was made with other settings ({listed}); only --iterations, "
-                       "--checkpoint-every and --threads may change when resuming")
+                       "checkpoint_every and --threads may change when resuming (more --iterations keep the "
+                       "run's schedules)")
 
 
 def resume_config(run_dir, opts: dict, given: set[str]) -> TrainConfig:
@@ -277,6 +377,9 @@ def resume_config(run_dir, opts: dict, given: set[str]) -> TrainConfig:
     if not saved_path.exists():
         return TrainConfig(**opts)
     saved = TrainConfig.load(saved_path)
+    if (Path(run_dir) / "config.toml").exists():   # the run's record; config.json mirrors it for older readers
+        saved_path = Path(run_dir) / "config.toml"
+        saved = replace(TrainConfig.load(saved_path), scene=saved.scene)
     if "scene" in given and not Path(saved.scene).exists():  # the run and its scene were moved: same file?
         from .run_scene import resolve_run_scene
 
@@ -287,6 +390,8 @@ def resume_config(run_dir, opts: dict, given: set[str]) -> TrainConfig:
         if moved is not None and Path(moved).resolve() == Path(opts["scene"]).resolve():
             saved = replace(saved, scene=opts["scene"])
     merged = {**asdict(saved), **{k: v for k, v in opts.items() if k in given}}
+    if merged["iterations"] != saved.iterations and saved.schedule_length is None:
+        merged["schedule_length"] = saved.iterations   # extending (or cutting) a run keeps its schedules
     cfg = TrainConfig(**merged)
     if (Path(run_dir) / "ckpt.pt").exists():
         diffs = saved.differences(cfg)

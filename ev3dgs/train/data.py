@@ -41,8 +41,9 @@ class TrainData:
     blur_space: str = "linear"         # resolved: how the trainer averages renders (blur_loss space)
     event_transfer: str = "srgb"       # resolved: what log_intensity decodes ("srgb", "linear", "display")
     sub_c2w: np.ndarray | None = None  # (N,B,4,4) float64 camera-to-world of the sub-poses (pose refinement)
-    mismatch_sigma: float | None = None   # absolute per-pixel threshold spread the scene was simulated with
+    mismatch_sigma: float | None = None   # absolute per-pixel threshold spread (log units) of the sensor model
     noise_rate_hz: float | None = None    # background-activity events per pixel and second (leak + shot noise)
+    sensor_source: dict | None = None     # where each came from: "scene" (/events attrs), "provenance (legacy)"
     n_sub: np.ndarray | None = None       # (N,) sub-poses of each view (--subpose-px); None: all B of them.
     # A view with k < B uses [:k] of viewmats, sub_times and sub_c2w and [:k-1] of bins (the rest is padding)
     motion_px: np.ndarray | None = None   # (N,) the image motion --subpose-px measured per exposure
@@ -161,13 +162,31 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
         transfer=transfer,
         count_convention=sc.sensor.count_convention or schema.default_count_convention(sc.source, sc.config),
         raw_matrix=sc.sensor.camera_raw_matrix, blur_space=blur, event_transfer=ev_transfer, sub_c2w=sub,
-        n_sub=n_sub, motion_px=motion, **sensor_noise(sc.config),
+        n_sub=n_sub, motion_px=motion, **sensor_model(sc.sensor, sc.config),
     )
 
 
-def sensor_noise(config: dict) -> dict:
-    """{mismatch_sigma, noise_rate_hz} from a simulated scene's provenance (/config sim.dvs); None where the
-    file does not say (real recordings, imports): the trainer then uses its own prior (--event-mismatch)."""
+def sensor_model(sensor, config: dict) -> dict:
+    """{mismatch_sigma, noise_rate_hz, sensor_source} of the event noise model: the scene's declared sensor
+    model (/events attrs mismatch_sigma, leak_rate_hz, shot_noise_rate_hz: schema.SENSOR_MODEL_ATTRS), each
+    value where the file declares it. A file that declares none of them (made before they were declared) falls
+    back to its simulator provenance where it has one (legacy_sensor_noise); otherwise None: the trainer's
+    defaults (terms/events.py)."""
+    sigma = getattr(sensor, "mismatch_sigma", None)
+    rates = [getattr(sensor, k, None) for k in ("leak_rate_hz", "shot_noise_rate_hz")]
+    if sigma is not None or any(r is not None for r in rates):
+        rate = None if all(r is None for r in rates) else float(sum(r or 0.0 for r in rates))
+        return {"mismatch_sigma": None if sigma is None else float(sigma), "noise_rate_hz": rate,
+                "sensor_source": {"mismatch_sigma": "scene" if sigma is not None else "default",
+                                  "noise_rate_hz": "scene" if rate is not None else "default"}}
+    legacy = legacy_sensor_noise(config)
+    src = {k: ("provenance (legacy)" if legacy[k] is not None else "default") for k in legacy}
+    return {**legacy, "sensor_source": src}
+
+
+def legacy_sensor_noise(config: dict) -> dict:
+    """LEGACY, for scene files simulated before /events declared the sensor model: {mismatch_sigma,
+    noise_rate_hz} from the simulator's provenance (/config sim.dvs); None where the file does not say."""
     sim = config.get("sim") if isinstance(config, dict) else None
     dvs = sim.get("dvs") if isinstance(sim, dict) else None
     if not isinstance(dvs, dict):

@@ -163,12 +163,13 @@ class PoseRefiner:
 
     @classmethod
     def for_training(cls, data, cfg, device) -> "PoseRefiner":
-        """From the trainer's data (its float64 sub-poses) and config (the --pose-* options)."""
+        """From the trainer's data (its float64 sub-poses) and config (the [poses] table; the learning rate decays
+        over the run's schedule length)."""
         times = np.asarray(data.sub_times)
         span = (times[:, -1:] - times[:, :1]).astype(np.float64)
         frac = np.where(span > 0, (times - times[:, :1]) / np.where(span > 0, span, 1.0), 0.5)
         return cls(data.sub_c2w, times, frac, data.scene_scale, lr=cfg.pose_lr, lr_final=cfg.pose_lr_final,
-                   start=cfg.pose_start, warmup=cfg.pose_warmup, iterations=cfg.iterations,
+                   start=cfg.pose_start, warmup=cfg.pose_warmup, iterations=cfg.schedule_iterations,
                    max_rotation_deg=cfg.pose_max_rotation, max_translation=cfg.pose_max_translation,
                    gauge=cfg.pose_gauge, frame=cfg.pose_frame, device=device)
 

@@ -30,7 +30,6 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from ..errors import ConfigError, Ev3dgsError
@@ -40,13 +39,7 @@ from ..splat.strategy import DefaultStrategy, scaled_schedule
 from .checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .data import TrainData, load_train_data
-from .edi_prior import anneal_factor, edi_prior_loss
-from .events import pair_list, pose_counts
-from .frame_noise import blur_weight, estimate_noise, update_mse
 from .init import init_bounds
-from .losses import (average_loss, blur_average, log_intensity, noise_event_loss, pose_event_loss,
-                     srgb_to_linear_hdr_torch, srgb_to_linear_torch, update_floor)
-from .metrics import psnr
 from .rng import stream_generator, stream_seed
 
 
@@ -94,8 +87,70 @@ def init_model(data: TrainData, cfg: TrainConfig, device) -> GaussianModel:
                                           sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity, device=device)
 
 
+class Step:
+    """One step's shared facts: the view, its cameras, the renders each term asked for, and what terms publish
+    for later terms of the same step (``shared``: the blur average, the decoded images, the event floor...)."""
+
+    def __init__(self, trainer: "Trainer", view: int):
+        self.trainer, self.view = trainer, view
+        data = trainer.data
+        self.k = data.sub_count(view)   # --subpose-px: this view's own count; the rest of its rows is padding
+        self.target = data.images[view]
+        # the view's cameras: its b+1 sub-poses across the exposure (naive: the mid pose)
+        self.poses = data.mid_viewmats[view:view + 1] if trainer.cfg.naive else data.viewmats[view][:self.k]
+        self.shared: dict = {}
+        self.losses: dict = {}   # each term's loss as it entered the sum
+        self._index: dict = {}
+        self.renders = self.info = None
+
+    def render(self, requests: list) -> None:
+        """Render every camera the terms asked for in ONE rasterizer call. ``requests``: (term, (m, 4, 4) or
+        None) pairs. A request of the same tensor as an earlier one (the view's sub-poses, asked for by the
+        blur and the event terms) shares its renders, and a camera equal to one an earlier request listed is
+        rendered once; cameras within one request are all rendered (a static exposure's equal sub-poses are
+        each one sample of the blur average and of the densification statistics, as before)."""
+        cams, blocks, seen = [], [], {}
+        for term, poses in requests:
+            if poses is None:
+                continue
+            if id(poses) not in seen:
+                earlier = len(cams)
+                idx = []
+                for c in poses:
+                    j = next((i for i in range(earlier) if torch.equal(cams[i], c)), None)
+                    if j is None:
+                        cams.append(c)
+                        j = len(cams) - 1
+                    idx.append(j)
+                seen[id(poses)] = idx
+                blocks.append(poses)
+            self._index[term] = seen[id(poses)]
+        stack = blocks[0] if len(blocks) == 1 else torch.stack(cams)
+        self.renders, _, self.info = self.trainer.render(stack)
+
+    def images(self, term) -> torch.Tensor:
+        """(m, H, W, 3) the renders of the cameras ``term`` asked for, in its order."""
+        idx = self._index[term]
+        if idx == list(range(len(self.renders))):
+            return self.renders
+        return self.renders[torch.as_tensor(idx, device=self.renders.device)]
+
+
 class Trainer:
+    """The core: model, optimiser, densification, schedule, checkpoints and the loop. Everything optional is
+    a term (train/terms/), built from the registry where the config turns it on."""
+
+    # attributes older callers read on the trainer, now held by a term: name -> (term table, attribute)
+    TERM_ATTRS = {"pose_refiner": ("poses", "refiner"), "threshold_map": ("threshold_map", "map"),
+                  "event_floor": ("events", "floor"), "blur_mse": ("events", "blur_mse"),
+                  "frame_noise_var": ("events", "frame_noise_var"), "rel_mismatch": ("events", "rel_mismatch"),
+                  "noise_rate_hz": ("events", "noise_rate_hz"), "threshold_opt": ("events", "threshold_opt"),
+                  "pair_generator": ("events", "pair_generator"), "response": ("response", "curve"),
+                  "response_opt": ("response", "opt"), "edi": ("edi_prior", "inputs")}
+
     def __init__(self, cfg: TrainConfig, run_dir: str | Path, quiet: bool = False):
+        from .terms import all_terms
+
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.quiet = quiet
@@ -108,98 +163,50 @@ class Trainer:
                                     subpose_px=cfg.subpose_px)
         if self.data.n_sub is not None and not quiet:
             n, mo = self.data.n_sub, self.data.motion_px
-            print(f"--subpose-px {cfg.subpose_px:g}: {n.min()}-{n.max()} sub-poses per view (mean {n.mean():.1f}) "
-                  f"for {mo.min():.1f}-{mo.max():.1f} px of motion per exposure", file=sys.stderr)
-        if cfg.hdr and self.data.blur_space != "linear":
-            raise ConfigError("--hdr needs the linear-light blur model (--blur-space linear, or a scene whose "
-                              "/train transfer is srgb)")
-        self.response, self.response_opt = self._response()  # --learn-response (response.py)
+            print(f"blur.subpose_px {cfg.subpose_px:g}: {n.min()}-{n.max()} sub-poses per view (mean "
+                  f"{n.mean():.1f}) for {mo.min():.1f}-{mo.max():.1f} px of motion per exposure", file=sys.stderr)
         self.model = init_model(self.data, cfg, self.device)
         self.optimizers = self.model.make_optimizers(scene_scale=self.data.scene_scale)
         self.means_lr0 = self.optimizers["means"].param_groups[0]["lr"]
-        # densification steps scaled with --iterations (gsplat-style; 30 000 steps = the 3DGS defaults)
-        self.strategy = DefaultStrategy(**scaled_schedule(cfg.iterations), scene_scale=self.data.scene_scale,
-                                        seed=stream_seed(cfg.seed, "densify"))
+        # densification steps scaled to the run's schedule length (gsplat-style; 30 000 steps = the 3DGS
+        # defaults), never starting before MIN_SCHEDULE_STEPS (schedule_floors)
+        self.strategy = DefaultStrategy(**densify_schedule(cfg.schedule_iterations),
+                                        scene_scale=self.data.scene_scale, seed=stream_seed(cfg.seed, "densify"))
         self.strategy_state = self.strategy.initialize_state(len(self.model), device=self.device)
         self.generator = stream_generator(cfg.seed, "views")       # view order
-        self.pair_generator = stream_generator(cfg.seed, "pairs")  # --event-pairs draws (train/rng.py)
         self.view_queue: list[int] = []
-        self.thresholds = {
-            "pos": torch.tensor(math.log(self.data.pos_threshold), device=self.device,
-                                requires_grad=cfg.learn_thresholds),
-            "neg": torch.tensor(math.log(self.data.neg_threshold), device=self.device,
-                                requires_grad=cfg.learn_thresholds)}
-        self.threshold_opt = (torch.optim.Adam(list(self.thresholds.values()), lr=1e-3)
-                              if cfg.learn_thresholds and cfg.uses_events else None)
         self.step = 0
-        self.use_events = cfg.uses_events and self.data.bins is not None
-        self.event_floor: float | None = None   # the noise norm's model floor (losses.update_floor)
-        self.frame_noise_var = self._frame_noise() if self.use_events else 0.0   # --frame-noise (frame_noise.py)
-        self.blur_mse: float | None = None      # the blur term's squared error, tracked over steps
-        self.rel_mismatch, self.noise_rate_hz = self._event_noise()
-        self.threshold_map = None   # --threshold-map: per-pixel thresholds (threshold_map.py)
-        if cfg.threshold_map and self.use_events and self.rel_mismatch > 0:
-            from .threshold_map import ThresholdMap
+        self.terms: list = []   # built in registry order; a term's build may look at those before it
+        for cls in all_terms():
+            term = cls.build(self)
+            if term is not None:
+                self.terms.append(term)
 
-            self.threshold_map = ThresholdMap(self.rel_mismatch, self.data.n_views, self.data.height,
-                                              self.data.width, self.device)
-        self.edi = self._edi_inputs() if cfg.edi_prior > 0 and self.use_events else None  # --edi-prior
-        self.pose_refiner = None  # --refine-poses (issue 16): learnable exposure-trajectory corrections
-        if cfg.refine_poses:
-            from .pose_refine import PoseRefiner
+    def term(self, table: str):
+        """This run's term of that table, or None where it is off."""
+        return next((t for t in self.terms if t.table == table), None)
 
-            self.pose_refiner = PoseRefiner.for_training(self.data, cfg, self.device)
+    def __getattr__(self, name):
+        if name in Trainer.TERM_ATTRS and "terms" in self.__dict__:
+            table, attr = Trainer.TERM_ATTRS[name]
+            term = self.term(table)
+            return None if term is None else getattr(term, attr)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    @property
+    def use_events(self) -> bool:
+        return self.term("events") is not None
+
+    @property
+    def thresholds(self) -> dict:
+        """The ON/OFF contrast thresholds (log of, as tensors): the event term's, else the scene's."""
+        ev = self.term("events")
+        if ev is not None:
+            return ev.thresholds
+        return {k: torch.tensor(math.log(t), device=self.device)
+                for k, t in (("pos", self.data.pos_threshold), ("neg", self.data.neg_threshold))}
 
     # ------------------------------------------------------------------ helpers
-    def _event_noise(self) -> tuple[float, float]:
-        """(relative threshold mismatch, noise events per pixel and second) for the noise norm: --event-mismatch,
-        else the scene's simulated settings, else DEFAULT_REL_MISMATCH and no noise events."""
-        from .config import DEFAULT_REL_MISMATCH
-
-        d = self.data
-        if self.cfg.event_mismatch is not None:
-            rel = self.cfg.event_mismatch
-        elif d.mismatch_sigma is not None:
-            rel = d.mismatch_sigma / (0.5 * (d.pos_threshold + d.neg_threshold))
-        else:
-            rel = DEFAULT_REL_MISMATCH
-        return float(rel), float(d.noise_rate_hz or 0.0)
-
-    def _frame_noise(self) -> float:
-        """--frame-noise: the training frames' noise variance (display values, 1 = white), given or estimated
-        (log.jsonl records it as sigma in 8-bit levels, with the event weight it sets, where it is above 0)."""
-        if self.cfg.frame_noise is not None:
-            return (self.cfg.frame_noise / 255.0) ** 2
-        return estimate_noise(self.data.images.cpu().numpy(), step=1.0 / 255.0)   # scene files store 8 bits
-
-    def _edi_inputs(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """--edi-prior: each view's (N, H, W) log intensity of the blurry frame and where the EDI target holds
-        (edi_prior.valid_mask). Refused where the event intensity is not linear in what the blur model averages."""
-        from .edi_prior import COMPATIBLE, valid_mask
-
-        d = self.data
-        if (d.blur_space, d.event_transfer) not in COMPATIBLE:
-            raise ConfigError(f"--edi-prior: the blurry frame's event intensity is not the mean of the sub-poses' "
-                              f"with the {d.blur_space} blur model and {d.event_transfer} events (give "
-                              f"--blur-space linear for sRGB scenes)")
-        with torch.no_grad():
-            log_b = log_intensity(d.images, d.color_filter, d.log_knee, d.event_transfer, d.raw_matrix)
-        return log_b, valid_mask(d.images, log_b, d.log_knee)
-
-    def _response(self):
-        """--learn-response: the curve and its optimizer, refused where the frame is not decoded with sRGB."""
-        if not self.cfg.learn_response:
-            return None, None
-        from .response import RESPONSE_LR, ResponseCurve
-
-        d = self.data
-        if d.blur_space != "linear" or (self.cfg.uses_events and d.event_transfer != "srgb"):
-            raise ConfigError("--learn-response needs a scene whose frames are decoded with sRGB: the linear-light "
-                              f"blur model and sRGB events (this run: {d.blur_space} blur model, "
-                              f"{d.event_transfer} events)")
-        curve = ResponseCurve(device=self.device)
-        return curve, torch.optim.Adam([curve.logits], lr=RESPONSE_LR)
-
     def _next_view(self) -> int:
         if not self.view_queue:
             self.view_queue = torch.randperm(self.data.n_views, generator=self.generator).tolist()
@@ -213,9 +220,11 @@ class Trainer:
                              threads=self.cfg.threads)
 
     def _set_lr(self) -> None:
-        # 3DGS position lr: exponential (log-linear) decay to 1% over the run
-        frac = min(1.0, self.step / max(1, self.cfg.iterations))
+        # 3DGS position lr: exponential (log-linear) decay to 1% over the run's schedule length
+        frac = min(1.0, self.step / max(1, self.cfg.schedule_iterations))
         self.optimizers["means"].param_groups[0]["lr"] = self.means_lr0 * (0.01 ** frac)
+        if self.step > 0 and self.step % self.cfg.sh_interval == 0:
+            self.model.active_sh_degree = min(self.model.sh_degree, self.model.active_sh_degree + 1)
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict:
@@ -224,132 +233,74 @@ class Trainer:
             return self._train_step()
 
     def _train_step(self) -> dict:
-        cfg, data = self.cfg, self.data
+        """Every term's cameras rendered in one call, every term's loss summed, one backward pass, every
+        optimiser stepped, densification from the per-camera screen-space gradients."""
         self._set_lr()
-        if self.step > 0 and self.step % cfg.sh_interval == 0:
-            self.model.active_sh_degree = min(self.model.sh_degree, self.model.active_sh_degree + 1)
-        v = self._next_view()
-        k = data.sub_count(v)  # --subpose-px: this view's own count; the rest of its rows is padding
-        poses = data.mid_viewmats[v:v + 1] if cfg.naive else data.viewmats[v][:k]
-        if self.pose_refiner is not None:  # the view's corrected sub-poses, differentiable in its corrections
-            poses = self.pose_refiner.viewmats(v, poses.dtype)[:k]
-        # the b+1 sub-poses in one batched call (one projection, one binning, one kernel over (camera, tile));
-        # the densification statistics still count every camera's render separately (info["n_cameras"])
-        if self.cfg.backend == "cpu" or (self.cfg.backend == "auto" and self.device.type == "cpu"):
-            stack, _, info = self.render(poses)
-            infos = [info]
-        else:  # reference / gsplat: one render per pose, each with its own means2d for the statistics
-            renders, infos = zip(*[(r[0], r[2]) for r in (self.render(pose) for pose in poses)])
-            stack = torch.stack(renders)
-        for info in infos:
-            info["grad_scale"] = float(len(poses))  # each of b+1 renders gets ~1/(b+1) of the gradient
-            self.strategy.step_pre_backward(info)
-        target = data.images[v]
-        # both losses decode the renders to linear light (blur average in linear light, events from linear
-        # intensity): decode once, so the decode and its backward run once per step. --hdr: renders above 1
-        # decode to radiance above full scale, and the sensor's clip follows the exposure integral
-        shown = stack if self.response is None else self.response(stack)  # --learn-response: h(render)
-        if cfg.hdr:
-            lin = srgb_to_linear_hdr_torch(shown)
-        else:
-            lin = (srgb_to_linear_torch(shown) if self.response is not None or (
-                self.use_events and data.blur_space == "linear" and data.event_transfer == "srgb") else None)
-        avg = blur_average(stack, data.blur_space, linear=lin)  # data.blur_space: "auto" resolved from the scene
-        if self.response is not None:  # back through h^-1 to the frame's display values
-            avg = self.response.inverse(avg)
-        l_blur = average_loss(avg, target, cfg.ssim_lambda, clip=cfg.hdr)
-        loss = l_blur
-        blur_grads = self._blur_grads(l_blur, infos)   # --densify-from blur
-        l_event = l_edi = torch.zeros((), device=self.device)
-        w_blur = 1.0
-        if self.use_events:
-            n_pairs = k * (k - 1) // 2  # --event-pairs N: N random pairs, all of them where a view has fewer
-            pairs = pair_list(k, cfg.event_pairs if 0 < cfg.event_pairs <= n_pairs else "all", self.pair_generator)
-            log_l = log_intensity(stack, data.color_filter, data.log_knee, data.event_transfer, data.raw_matrix,
-                                  linear=lin)
-            counts = pose_counts(data.bins[v][:k - 1])
-            tp, tn = self.thresholds["pos"].exp(), self.thresholds["neg"].exp()
-            if cfg.event_norm == "count":
-                l_event = pose_event_loss(log_l, counts, pairs, tp, tn, data.count_convention)
-            else:
-                t = data.sub_times[v][:k].astype(np.float64) * 1e-6
-                noise = (torch.tensor([self.noise_rate_hz * abs(t[b] - t[a]) for a, b in pairs],
-                                      dtype=log_l.dtype, device=log_l.device) if self.noise_rate_hz > 0 else None)
-                tmap = self.threshold_map
-                tpm, tnm = (tp, tn) if tmap is None else tmap.thresholds(tp, tn)
-                posterior = tmap is not None and cfg.map_weights == "posterior"   # --map-weights
-                l_event, estimate = noise_event_loss(log_l, counts, pairs, tpm, tnm, data.count_convention,
-                                                     self.rel_mismatch, noise, self.event_floor, data.log_knee,
-                                                     tmap.spread if posterior else None, cfg.floor_stat,
-                                                     cfg.huber_c)
-                self.event_floor = update_floor(self.event_floor, estimate)
-                if tmap is not None:  # this view's equations at the current render; the map solved again
-                    tmap.update(v, data.bins[v][:k - 1], tp, tn, self.event_floor, log_l, data.log_knee)
-                fade = anneal_factor(self.step, cfg.iterations, cfg.edi_anneal) if self.edi is not None else 0.0
-                if fade > 0:  # --edi-prior: each sub-pose's EDI target, weighted by its expected error
-                    l_edi = edi_prior_loss(log_l, counts, self.edi[0][v], self.edi[1][v], tpm, tnm,
-                                           self.event_floor, data.count_convention, self.rel_mismatch,
-                                           self.noise_rate_hz, t, data.log_knee,
-                                           tmap.spread if posterior else None)   # the map as updated
-                    loss = loss + cfg.edi_prior * fade * l_edi
-            # --frame-noise: where the frames' noise is most of the blur term's error, the events weigh more
-            w_blur = blur_weight(self.frame_noise_var, self.blur_mse)
-            loss = loss + (cfg.omega / w_blur) * l_event
+        step = Step(self, self._next_view())
+        for term in self.terms:   # pose refinement: the view's cameras as corrected
+            step.poses = term.adjust_cameras(step, step.poses)
+        step.render([(term, term.cameras(step)) for term in self.terms])
+        # densification statistics: each of the view's b+1 renders gets ~1/(b+1) of the blur average's gradient
+        step.info["grad_scale"] = float(len(step.poses))
+        self.strategy.step_pre_backward(step.info)
+        loss, logs = None, {}
+        for term in self.terms:
+            part, log = term.loss(step)
+            logs.update(log)
+            if part is not None:
+                step.losses[term.table] = part
+                loss = part if loss is None else loss + part
+        stats_grad = self._densify_grad(step)
         loss.backward()
-        self._guard(loss, l_blur, l_event)
+        self._guard(loss, step.losses)
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
-        for opt in (self.threshold_opt, self.response_opt):
-            if opt is not None:
-                opt.step()
-                opt.zero_grad(set_to_none=True)
-        pose_info = self.pose_refiner.step(self.step) if self.pose_refiner is not None else {}
+        for term in self.terms:
+            logs.update(term.after_backward(step))
         refined = {}
-        if cfg.densify:
-            for info, grad in zip(infos, blur_grads or ()):   # the statistics see the blur term's gradient only
-                info["means2d"].grad = grad
+        if self.cfg.densify:
+            if stats_grad is not None:
+                step.info["means2d"].grad = stats_grad
             refined = self.strategy.step_post_backward(self.model, self.optimizers, self.strategy_state,
-                                                       self.step, infos)
+                                                       self.step, [step.info])
         self.step += 1
-        with torch.no_grad():  # the blurry frame as the loss saw it (averaged in data.blur_space)
-            p = psnr(avg.detach().clamp(0, 1), target)
-            if self.frame_noise_var > 0:
-                self.blur_mse = update_mse(self.blur_mse, float(torch.mean(
-                    (avg.detach().clamp(0, 1) - target.to(avg.dtype)) ** 2)))
-        return {"step": self.step, "view": v, "loss": loss.item(), "blur": l_blur.item(), "event": l_event.item(),
-                "psnr_blurry": p, "gaussians": len(self.model), **refined, **pose_info,
-                **({"edi": l_edi.item()} if self.edi is not None else {}),
-                **({"subposes": k} if data.n_sub is not None else {}),
-                **({"event_weight": cfg.omega / w_blur, "frame_noise": 255.0 * math.sqrt(self.frame_noise_var)}
-                   if self.frame_noise_var > 0 else {})}
+        with torch.no_grad():
+            for term in self.terms:
+                logs.update(term.after_step(step))
+        return {"step": self.step, "view": step.view, "loss": loss.item(), **logs, "gaussians": len(self.model),
+                **refined}
+
+    def _densify_grad(self, step: Step):
+        """densify.from = "blur" while the strategy still densifies and other terms add to the loss: the blur
+        term's gradient at the renders' screen-space means (C, N, 2), so that the event term's weight, which
+        grows with the events' precision, does not decide how many Gaussians are split. None: the statistics
+        come from the whole loss's gradient, as the backward pass leaves it. Either way the strategy sums
+        each camera's gradient norm into its statistics and counts each camera once (a per-render mean)."""
+        if not (self.cfg.densify_source == "blur" and set(step.losses) - {"blur"} and self.cfg.densify
+                and self.step < self.strategy.refine_stop and "blur" in step.losses):
+            return None
+        parts = step.info.get("means2d_parts")   # a backend that rendered camera by camera (rasterize.py)
+        targets = parts if parts is not None else [step.info["means2d"]]
+        grads = torch.autograd.grad(step.losses["blur"], targets, retain_graph=True, allow_unused=True)
+        if parts is None:
+            return grads[0]
+        return torch.stack([torch.zeros_like(p) if g is None else g for p, g in zip(parts, grads)])
 
     def trained_parameters(self) -> list[torch.Tensor]:
-        """Every tensor a step updates: the Gaussians, the learned thresholds and whatever any optimizer of
-        the trainer holds (so parameters added later are covered by the NaN guard without listing them). The
-        pose corrections of --refine-poses are not listed: PoseRefiner.step skips a non-finite pose gradient
-        itself (counted as pose_skipped in log.jsonl) rather than stopping the run."""
+        """Every tensor a step updates and the guard checks: the Gaussians and every term's parameters (the
+        pose corrections are not listed: the pose term skips a non-finite pose gradient itself, counted as
+        pose_skipped in log.jsonl, rather than stopping the run)."""
         out = {id(p): p for p in self.model.params.values()}
-        out.update({id(p): p for p in self.thresholds.values() if p.requires_grad})
-        opts = list(self.optimizers.values()) + [o for o in vars(self).values()
-                                                  if isinstance(o, torch.optim.Optimizer)]
-        for opt in opts:
+        for term in self.terms:
+            out.update({id(p): p for p in term.parameters()})
+        extra = [o for o in vars(self).values() if isinstance(o, torch.optim.Optimizer)]   # any other optimiser
+        for opt in list(self.optimizers.values()) + extra:
             for group in opt.param_groups:
                 out.update({id(p): p for p in group["params"]})
         return list(out.values())
 
-    def _blur_grads(self, l_blur: torch.Tensor, infos: list[dict]) -> tuple | None:
-        """--densify-from blur, while the strategy still densifies: the blur term's gradient at each render's
-        screen-space means (the strategy's statistics), so that the event term's weight, which grows with
-        the events' precision, does not decide how many Gaussians are split. None: the statistics come from
-        the whole loss's gradient, as the backward pass leaves it."""
-        if not (self.cfg.densify_source == "blur" and self.use_events and self.cfg.densify
-                and self.step < self.strategy.refine_stop):
-            return None
-        return torch.autograd.grad(l_blur, [info["means2d"] for info in infos], retain_graph=True,
-                                   allow_unused=True)
-
-    def _guard(self, loss, l_blur, l_event) -> None:
+    def _guard(self, loss, losses: dict) -> None:
         bad = not torch.isfinite(loss)
         if not bad:  # a sum is finite only if every term is (inf or NaN anywhere makes it inf or NaN); a finite
             # gradient whose sum overflows is told apart by the element-wise test, which only runs then
@@ -358,8 +309,8 @@ class Trainer:
         if bad:
             ckpt = self.run_dir / "ckpt.pt"
             where = f"the last good checkpoint is {ckpt}" if ckpt.exists() else "no checkpoint was written yet"
-            raise TrainingError(f"non-finite loss or gradient at step {self.step + 1} (blur {l_blur.item():.4g}, "
-                                f"event {l_event.item():.4g}); stopped, {where}")
+            parts = ", ".join(f"{k} {v.item():.4g}" for k, v in losses.items())
+            raise TrainingError(f"non-finite loss or gradient at step {self.step + 1} ({parts}); stopped, {where}")
 
     # ------------------------------------------------------------------ the run
     def fit(self, resume: bool = False, on_step=None) -> dict:
@@ -397,7 +348,7 @@ class Trainer:
                 rec["seconds"] = time.perf_counter() - t0
                 log.write(json.dumps(rec) + "\n")
                 bar.update(1)
-                bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr_blurry']:.2f}",
+                bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec.get('psnr_blurry', float('nan')):.2f}",
                                 gaussians=rec["gaussians"], refresh=False)
                 if self.step % self.cfg.checkpoint_every == 0 or self.step == self.cfg.iterations:
                     log.flush()
@@ -412,31 +363,49 @@ class Trainer:
         return rec
 
     def save_model(self) -> None:
-        """model.pt (and config.json) in the run folder: what eval, render and export read."""
+        """model.pt (and config.json, config.toml) in the run folder: what eval, render and export read; and
+        every term's own outputs (trajectory.npz, response.json); an older run's term outputs that this run
+        does not make are removed."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.cfg.save(self.run_dir / "config.json")
         from ..outputs import atomic_path
 
+        extras = {"thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()},
+                  "threshold_map": None}   # --threshold-map: (2, H, W) ON/OFF multipliers of the thresholds
+        for term in self.terms:
+            extras.update(term.model_extras())
         with atomic_path(self.run_dir / "model.pt") as tmp:  # on failure: temporary removed, OutputError
-            torch.save({"model": self.model.state_dict(),
-                        "thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()},
-                        # --threshold-map: (2, H, W) ON/OFF multipliers of the thresholds above
-                        "threshold_map": (None if self.threshold_map is None
-                                          else self.threshold_map.multiplier.clone())}, tmp)
-        if self.response is not None:  # --learn-response: the curve, for the user to read
-            with atomic_path(self.run_dir / "response.json") as tmp:
-                tmp.write_text(json.dumps(self.response.table(), indent=1) + "\n")
-        else:
-            (self.run_dir / "response.json").unlink(missing_ok=True)
-        if self.pose_refiner is not None:  # the refined trajectory, read by eval
-            self.pose_refiner.save(self.run_dir / "trajectory.npz")
-        else:  # never leave an older run's trajectory beside this model
-            (self.run_dir / "trajectory.npz").unlink(missing_ok=True)
+            torch.save({"model": self.model.state_dict(), **extras}, tmp)
+        for name in TERM_FILES:   # never leave an older run's trajectory or response beside this model
+            (self.run_dir / name).unlink(missing_ok=True)
+        for term in self.terms:
+            term.write(self.run_dir)
+
+
+# files a term writes into the run folder (train/terms/)
+TERM_FILES = ("trajectory.npz", "response.json", "sensor_model.json")
+# Short runs: no schedule starts before a scene has had a first fit, whatever the run length (a 150-step run
+# scaled from 3DGS's 30 000 densified from step 2 and reset every opacity every 15 steps, and fell to a white
+# blob). Densification starts at step MIN_DENSIFY_START at the earliest, the opacity reset comes at most every
+# MIN_RESET_EVERY steps, the EDI prior fades over MIN_EDI_ANNEAL_STEPS at least; pose refinement starts at
+# poses.start (100 steps by default), an absolute step. Runs of 3000 steps and more are not affected.
+MIN_DENSIFY_START = 50
+MIN_RESET_EVERY = 100
+MIN_EDI_ANNEAL_STEPS = 100
+
+
+def densify_schedule(iterations: int) -> dict:
+    """The densification steps of a run whose schedules are ``iterations`` long: strategy.scaled_schedule with
+    the floors above (a run whose scaled refine_stop comes before MIN_DENSIFY_START is not densified)."""
+    sched = scaled_schedule(iterations)
+    sched["refine_start"] = max(sched["refine_start"], MIN_DENSIFY_START)
+    sched["reset_every"] = max(sched["reset_every"], MIN_RESET_EVERY)
+    return sched
 
 
 # what `ev3dgs train` and `ev3dgs eval` write in a run folder; a fresh run removes them (and nothing else)
-RUN_FILES = ("config.json", "model.pt", "ckpt.pt", "log.jsonl", "metrics.json", "trajectory.npz", "training.png",
-             "response.json")
+RUN_FILES = ("config.json", "config.toml", "model.pt", "ckpt.pt", "log.jsonl", "metrics.json", "trajectory.npz",
+             "training.png", "response.json", "sensor_model.json")
 RUN_MARKERS = ("config.json", "model.pt", "ckpt.pt", "metrics.json")  # a folder with one of these holds a run
 
 
@@ -499,12 +468,13 @@ def plot_curves(log_path: Path, png: Path) -> None:
         return
     steps = [r["step"] for r in recs]
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
-    ax[0].semilogy(steps, [r["blur"] for r in recs], label="blur loss", lw=0.8)
-    if any(r["event"] for r in recs):
-        ax[0].semilogy(steps, [max(r["event"], 1e-12) for r in recs], label="event loss (unweighted)", lw=0.8)
+    ax[0].semilogy(steps, [r.get("blur", float("nan")) for r in recs], label="blur loss", lw=0.8)
+    if any(r.get("event") for r in recs):
+        ax[0].semilogy(steps, [max(r.get("event", 0.0), 1e-12) for r in recs], label="event loss (unweighted)",
+                       lw=0.8)
     ax[0].legend(fontsize=8)
     ax[0].set_xlabel("step")
-    ax[1].plot(steps, [r["psnr_blurry"] for r in recs], lw=0.8)
+    ax[1].plot(steps, [r.get("psnr_blurry", float("nan")) for r in recs], lw=0.8)
     ax[1].set_ylabel("PSNR vs blurry input (dB)")
     ax[1].set_xlabel("step")
     fig.tight_layout()

@@ -47,32 +47,39 @@ from ev3dgs.train.config import DENSIFY_FROM, EVENT_WEIGHTS, FLOOR_STATS, TrainC
 from ev3dgs.errors import InputError  # noqa: E402
 from ev3dgs.train.evaluate import evaluate  # noqa: E402
 from ev3dgs.train.jobs import default_jobs, run_parallel  # noqa: E402
+from ev3dgs.train.layout import variant_overrides  # noqa: E402
 from ev3dgs.train.lpips import load_lpips  # noqa: E402
 from ev3dgs.train.trainer import Trainer  # noqa: E402
 
-# --event-floor mean --event-huber 0 --densify-from all: what the studies' tables of the noise norm were measured
-# with (docs/fidelity.md); the default is the chi-square floor, a Huber penalty at 3 and densification from blur
-MEAN_FLOOR = dict(event_floor="mean", event_huber=0.0, densify_from="all")
-VARIANTS = {"naive": dict(naive=True), "blur-only": dict(event_loss=False), "blur+event": dict(),
-            # plain 3DGS on all 17 sharp sub-frames of every exposure at their own poses (the most any deblurring
-            # could recover from these exposures), scored on the scene's own views: see INFO_VARIANTS
-            "info-oracle": dict(oracle=True),
-            "oracle": dict(oracle=True), "blur+event-map": dict(threshold_map=True, map_weights="posterior"),
-            "blur+event-mapprior": dict(threshold_map=True),
-            "blur+event-hdr": dict(hdr=True), "blur+event-sh": dict(sh_interval=33),
-            "blur+event-hdr-sh": dict(hdr=True, sh_interval=33), "oracle-sh": dict(oracle=True, sh_interval=33),
-            "blur+event-edi": dict(edi_prior=8 / 625), "blur+event-hdr-sh-edi": dict(hdr=True, sh_interval=33,
-                                                                                    edi_prior=8 / 625),
-            # each view's sub-poses from its motion, at most 2 px apart, up to 17 (--subpose-px 2)
-            "blur+event-px2": dict(subposes=17, subpose_px=2.0),
-            # a learned camera response before the sRGB decode (--learn-response), alone and with --hdr
-            "blur+event-response": dict(learn_response=True),
-            "blur+event-hdr-response": dict(hdr=True, learn_response=True),
-            # the events at their weight omega whatever the frames' noise (--frame-noise 0)
-            "blur+event-fn0": dict(frame_noise=0.0),
-            # the mean floor, no penalty, densification from the whole loss (--event-floor mean --event-huber 0
-            # --densify-from all): the noise norm's settings before the chi-square floor became its default
-            "blur+event-mean": dict(MEAN_FLOOR)}
+# events.floor = "mean", events.huber = 0, densify.from = "all": what the studies' tables of the noise norm were
+# measured with (docs/fidelity.md); the default is the chi-square floor, a Huber penalty at 3 and densification
+# from the blur term. Variants are written in train.toml's shape (ev3dgs.train.layout.variant_overrides: a
+# term's table turns it on, ``False`` turns it off).
+MEAN_FLOOR_TOML = {"events": {"floor": "mean", "huber": 0.0}, "densify": {"from": "all"}}
+VARIANTS_TOML = {
+    "naive": {"naive": True}, "blur-only": {"events": False}, "blur+event": {},
+    # plain 3DGS on all 17 sharp sub-frames of every exposure at their own poses (the most any deblurring
+    # could recover from these exposures), scored on the scene's own views: see INFO_VARIANTS
+    "info-oracle": {"oracle": True},
+    "oracle": {"oracle": True}, "blur+event-map": {"threshold_map": {"weights": "posterior"}},
+    "blur+event-mapprior": {"threshold_map": {}},
+    "blur+event-hdr": {"hdr": {}}, "blur+event-sh": {"sh_interval": 33},
+    "blur+event-hdr-sh": {"hdr": {}, "sh_interval": 33}, "oracle-sh": {"oracle": True, "sh_interval": 33},
+    "blur+event-edi": {"edi_prior": {"weight": 8 / 625}},
+    "blur+event-hdr-sh-edi": {"hdr": {}, "sh_interval": 33, "edi_prior": {"weight": 8 / 625}},
+    # each view's sub-poses from its motion, at most 2 px apart, up to 17
+    "blur+event-px2": {"blur": {"subposes": 17, "subpose_px": 2.0}},
+    # a learned camera response before the sRGB decode, alone and with [hdr]
+    "blur+event-response": {"response": {}},
+    "blur+event-hdr-response": {"hdr": {}, "response": {}},
+    # the events at their weight omega whatever the frames' noise
+    "blur+event-fn0": {"events": {"frame_noise": 0.0}},
+    # the mean floor, no penalty, densification from the whole loss: the noise norm's settings before the
+    # chi-square floor became its default
+    "blur+event-mean": MEAN_FLOOR_TOML}
+# the same as TrainConfig keyword overrides (what the jobs, the run folders' cache checks and the tests use)
+MEAN_FLOOR = variant_overrides(MEAN_FLOOR_TOML)
+VARIANTS = {name: variant_overrides(v) for name, v in VARIANTS_TOML.items()}
 # variants trained on a scene file derived from the scene's render cache (derived_scenes.py: the kind named)
 INFO_VARIANTS = {"info-oracle": "info"}
 DEFAULT_VARIANTS = ("naive", "blur-only", "blur+event", "info-oracle", "oracle")

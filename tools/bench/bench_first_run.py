@@ -29,7 +29,7 @@ def _train(scene: Path, out: Path, iterations: int, cache: Path) -> tuple[float,
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
     t = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "ev3dgs.cli.main", "train", str(scene), "--out", str(out),
-                        "--iterations", str(iterations), "--init-points", "2000", "--threads", "1", "--quiet"],
+                        "--iterations", str(iterations), "--set", "init_points=2000", "--threads", "1", "--quiet"],
                        env=env, capture_output=True, text=True, check=True)
     return time.perf_counter() - t, r.stderr
 

@@ -91,7 +91,8 @@ SUMMARY = ("cases", "passed", "traceback", "crash", "hang", "corrupt-output", "s
 FEW = 4                        # records a single flipped timestamp may cost besides its own
 T_MAX = 2 ** 33                # no AEDAT 2.0 timestamp of a plausible read is above this (2.4 h past 2^32)
 TRAIN_REFUSE_S = 30.0          # train must refuse an impossible scene within this (2 shared cores, torch import)
-FAST = ["--iterations", "5", "--init-points", "500", "--threads", "1", "--sh-degree", "0", "--checkpoint-every", "5"]
+FAST = ["--iterations", "5", "--set", "init_points=500", "--threads", "1", "--set", "sh_degree=0",
+        "--set", "checkpoint_every=5"]
 ENTRY = {"ev3dgs": "ev3dgs.cli.main", "ev3dgs-sim": "ev3dgs.cli.sim", "ev3dgs-ingest": "ev3dgs.cli.ingest"}
 
 

@@ -47,43 +47,59 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 sys.path.insert(0, str(ROOT / "tools" / "bench"))
 
+from ev3dgs.train.layout import variant_overrides  # noqa: E402
 from pareto import save_json  # noqa: E402
 
-# the -map variants weigh the events by each pixel's fitted threshold spread (--map-weights posterior); the
-# -mapprior ones by the mismatch prior, as without a map (--threshold-map's default)
-MAP = dict(threshold_map=True, map_weights="posterior")
-ROBUST = dict(event_floor="chi2", event_huber=3.0, densify_from="blur")
-VARIANTS = {"blur-only": dict(event_loss=False), "blur+event": dict(event_norm="noise"),
-            "blur+event-count": dict(event_norm="count"), "oracle": dict(oracle=True),
-            "blur+event-map": dict(event_norm="noise", **MAP),
-            # radiance above full scale (--hdr) and the SH degree raised every 33 steps instead of 1000
-            "blur-only-hdr": dict(event_loss=False, hdr=True), "blur+event-hdr": dict(event_norm="noise", hdr=True),
-            "blur+event-sh": dict(event_norm="noise", sh_interval=33),
-            "blur+event-hdr-sh": dict(event_norm="noise", hdr=True, sh_interval=33),
-            "blur-only-hdr-sh": dict(event_loss=False, hdr=True, sh_interval=33),
-            "oracle-sh": dict(oracle=True, sh_interval=33),
-            "blur-only-sh": dict(event_loss=False, sh_interval=33),   # with blur+event-sh, oracle-sh: the
-                                                                       # default schedule (auto) at 1000 steps
-            "blur+event-sh-mapprior": dict(event_norm="noise", sh_interval=33, threshold_map=True),
-            # the EDI prior (--edi-prior W, W in units of the noise norm's default event weight 8/625), faded
-            # out over the first half of the run; alone and with both options above
-            "blur+event-edi": dict(event_norm="noise", edi_prior=8 / 625),
-            "blur+event-hdr-sh-edi": dict(event_norm="noise", hdr=True, sh_interval=33, edi_prior=8 / 625),
-            # both options with per-pixel thresholds, for the 40 % mismatch row
-            "blur+event-hdr-sh-map": dict(event_norm="noise", hdr=True, sh_interval=33, **MAP),
-            # the same with 17 sub-poses per exposure (the rendered sub-frames' count) instead of 5
-            "blur+event-hdr-sh-map@17": dict(event_norm="noise", hdr=True, sh_interval=33, subposes=17, **MAP),
-            # each view's sub-poses from its motion: at most 2 px apart, up to 17 (--subpose-px 2)
-            "blur+event-px2": dict(event_norm="noise", subposes=17, subpose_px=2.0),
-            "blur+event-hdr-sh-map-px2": dict(event_norm="noise", hdr=True, sh_interval=33, subposes=17,
-                                              subpose_px=2.0, **MAP),
-            # the floor at which the penalised chi-square averages as expected, a Huber penalty beyond 3
-            # standard deviations and densification from the blur term (--event-floor chi2 --event-huber 3
-            # --densify-from blur)
-            "blur+event-sh-robust": dict(event_norm="noise", sh_interval=33, **ROBUST),
-            # the same with --hdr, per-pixel thresholds and 17 sub-poses: every option at once
-            "blur+event-hdr-sh-map@17-robust": dict(event_norm="noise", hdr=True, sh_interval=33, subposes=17,
-                                                    **MAP, **ROBUST)}
+# Variants in train.toml's shape (ev3dgs.train.layout.variant_overrides: a term's table turns it on, False
+# turns it off). The -map variants weigh the events by each pixel's fitted threshold spread (threshold_map.weights
+# = "posterior"); the -mapprior ones by the mismatch prior, as without a map (the table's default).
+MAP = {"threshold_map": {"weights": "posterior"}}
+ROBUST = {"floor": "chi2", "huber": 3.0}   # [events] keys, with densify.from = "blur"
+NOISE = {"events": {"norm": "noise"}}
+HDR_SH = {"hdr": {}, "sh_interval": 33}
+EDI = {"edi_prior": {"weight": 8 / 625}}
+
+
+def _v(*parts: dict) -> dict:
+    """Variant tables merged (a table given twice: its keys together)."""
+    out: dict = {}
+    for part in parts:
+        for k, v in part.items():
+            out[k] = {**out[k], **v} if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+VARIANTS_TOML = {
+    "blur-only": {"events": False}, "blur+event": NOISE,
+    "blur+event-count": {"events": {"norm": "count"}}, "oracle": {"oracle": True},
+    "blur+event-map": _v(NOISE, MAP),
+    # radiance above full scale ([hdr]) and the SH degree raised every 33 steps instead of 1000
+    "blur-only-hdr": {"events": False, "hdr": {}}, "blur+event-hdr": _v(NOISE, {"hdr": {}}),
+    "blur+event-sh": _v(NOISE, {"sh_interval": 33}),
+    "blur+event-hdr-sh": _v(NOISE, HDR_SH),
+    "blur-only-hdr-sh": _v({"events": False}, HDR_SH),
+    "oracle-sh": {"oracle": True, "sh_interval": 33},
+    "blur-only-sh": {"events": False, "sh_interval": 33},   # with blur+event-sh, oracle-sh: the default
+                                                            # schedule (auto) at 1000 steps
+    "blur+event-sh-mapprior": _v(NOISE, {"sh_interval": 33, "threshold_map": {}}),
+    # the EDI prior (edi_prior.weight W, W in units of the noise norm's default event weight 8/625), faded
+    # out over the first half of the run; alone and with both options above
+    "blur+event-edi": _v(NOISE, EDI),
+    "blur+event-hdr-sh-edi": _v(NOISE, HDR_SH, EDI),
+    # both options with per-pixel thresholds, for the 40 % mismatch row
+    "blur+event-hdr-sh-map": _v(NOISE, HDR_SH, MAP),
+    # the same with 17 sub-poses per exposure (the rendered sub-frames' count) instead of 5
+    "blur+event-hdr-sh-map@17": _v(NOISE, HDR_SH, {"blur": {"subposes": 17}}, MAP),
+    # each view's sub-poses from its motion: at most 2 px apart, up to 17
+    "blur+event-px2": _v(NOISE, {"blur": {"subposes": 17, "subpose_px": 2.0}}),
+    "blur+event-hdr-sh-map-px2": _v(NOISE, HDR_SH, {"blur": {"subposes": 17, "subpose_px": 2.0}}, MAP),
+    # the floor at which the penalised chi-square averages as expected, a Huber penalty beyond 3 standard
+    # deviations and densification from the blur term
+    "blur+event-sh-robust": _v(NOISE, {"sh_interval": 33, "events": ROBUST, "densify": {"from": "blur"}}),
+    # the same with [hdr], per-pixel thresholds and 17 sub-poses: every option at once
+    "blur+event-hdr-sh-map@17-robust": _v(NOISE, HDR_SH, {"blur": {"subposes": 17}}, MAP,
+                                          {"events": ROBUST, "densify": {"from": "blur"}})}
+VARIANTS = {name: variant_overrides(v) for name, v in VARIANTS_TOML.items()}
 # variants that never read the events: one run per seed, on the events-free cell
 SENSOR_FREE = ("blur-only", "oracle", "blur-only-hdr", "blur-only-hdr-sh", "oracle-sh", "blur-only-sh")
 
