@@ -11,8 +11,10 @@ the projected `means2d` (whose .grad feeds densification), `radii`, `depths`, `w
 Batched: viewmat (C,4,4) renders C cameras at once: image (C,H,W,D), alpha (C,H,W,1), meta means2d (C,N,2),
 radii/depths (C,N), n_cameras C. On "cpu" that is one numba projection + SH kernel for all cameras
 (project_cpu.py, hand-written backward), one binning pass and one rasterizer kernel over (camera, tile); each
-camera's image and gradients are bitwise those of its own single-camera call. Other backends loop over the
-cameras (their stacked meta["means2d"] then carries no gradient: render per camera for densification).
+camera's image and gradients are bitwise those of its own single-camera call. On "cuda" one sequence of gsplat
+calls renders the stack (cuda.py), and meta["means2d"].grad[c] is camera c's screen-space gradient. "reference"
+loops over the cameras (its stacked meta["means2d"] then carries no gradient: render per camera for
+densification).
 
 Backends: "reference" (plain torch, the test oracle), "cpu" (numba kernels, exact), "cuda" (gsplat, when
 CUDA and gsplat are available), "auto" (cuda for CUDA tensors when possible, else cpu). Every backend
@@ -73,6 +75,12 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
     if backend == "cpu" and not (K.requires_grad or means.is_cuda):
         return _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree,
                                   near_plane, far_plane, eps2d, background, render_mode, threads)
+    if backend == "cuda":  # one camera or a stack (C, 4, 4): one sequence of gsplat calls either way
+        from .cuda import rasterization_cuda
+
+        return rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                  sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
+                                  background=background, render_mode=render_mode)
     if viewmat.ndim == 3:  # one camera at a time, stacked (the oracle for the batched cpu path)
         outs = [rasterization(means, quats, scales, opacities, colors, v, K, width, height, sh_degree=sh_degree,
                               near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, background=background,
@@ -81,12 +89,6 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
                 for k in outs[0][2]}
         meta["n_cameras"] = len(outs)
         return torch.stack([o[0] for o in outs]), torch.stack([o[1] for o in outs]), meta
-    if backend == "cuda":
-        from .cuda import rasterization_cuda
-
-        return rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                                  sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
-                                  background=background, render_mode=render_mode)
     proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height,
                              near=near_plane, far=far_plane, eps2d=eps2d)
     if colors.ndim == 3:
