@@ -21,9 +21,13 @@ state=${GPU_STATE:-/tmp/ev3dgs_gpu_check}   # kept between the two parts on the 
 mkdir -p "$out" "$state"
 export PYTHONPATH=$PWD MAX_JOBS=${MAX_JOBS:-16} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
 export OMP_WAIT_POLICY=PASSIVE
+# a system Python that refuses pip (PEP 668, "externally managed") is asked again with --break-system-packages
 python3 -m pip install -q --no-index --no-deps "$carry"/wheels/*.whl ||
+  python3 -m pip install -q --no-index --no-deps --break-system-packages "$carry"/wheels/*.whl ||
   { echo "error: installing the carried wheels failed" >&2; exit 2; }
-export PATH=$(python3 -c 'import ninja, os; print(ninja.BIN_DIR)'):$PATH   # gsplat's kernel build needs ninja
+if nb=$(python3 -c 'import ninja; print(ninja.BIN_DIR)' 2>/dev/null); then
+  export PATH=$nb:$PATH   # gsplat's kernel build needs ninja
+fi
 scene=()
 [ -f "$carry/lego_346x260.h5" ] && scene=(--scene-large "$carry/lego_346x260.h5")
 common=(--plan davis346 "${scene[@]}" --workdir "$state/work" --keep-models "$state/models_part$part")
