@@ -268,3 +268,25 @@ exec {sys.executable} "$@"
     assert sum(n.endswith("/model.pt") for n in names) == 6 and not any(n.endswith("ckpt.pt") for n in names)
     assert subprocess.run(["bash", str(REPO / "tools" / "gpu_device_run.sh"), "3"], cwd=REPO, env=env,
                           capture_output=True).returncode == 2
+
+
+def test_the_cpu_reference_trains_the_given_scene_in_full_on_the_cpu_backend(tmp_path):
+    """--cpu-reference: the runs a GPU check makes, on the cpu backend at full settings (the given scene, the
+    given initial points: not the dry run's quarter-size scenes and 500 points), without install, kernels or
+    tests."""
+    from ev3dgs.train.config import TrainConfig
+
+    scene = gpu_check.synthetic_scene(tmp_path / "s.h5", 24, 18, views=3)
+    out = tmp_path / "ref.json"
+    rc = gpu_check.main(["--cpu-reference", "--sizes", "small", "--scene-small", str(scene), "--variants",
+                         "blur+event", "--steps", "2", "--init-points", "300", "--json", str(out), "--workdir",
+                         str(tmp_path / "w"), "--keep-models", str(tmp_path / "m")])
+    r = json.loads(out.read_text())
+    assert rc == 0 and r["cpu_reference"] and not r["dry_run"] and r["gpu"] == "none (cpu reference)"
+    assert "gpu_tests" not in r and "kernels" not in r and r["backend"] == "cpu"
+    (run,) = r["runs"]
+    assert (run["backend"], run["steps_done"], run["width"], run["height"]) == ("cpu", 2, 24, 18)
+    cfg = TrainConfig.load(Path(run["model_dir"]) / "config.json")
+    assert (cfg.init_points, cfg.backend, cfg.iterations) == (300, "cpu", 2)
+    with pytest.raises(SystemExit):
+        gpu_check.main(["--cpu-reference", "--dry-run"])
