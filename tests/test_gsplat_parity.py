@@ -651,6 +651,37 @@ def test_densification_statistic_of_a_batched_render_is_the_sum_over_its_cameras
         assert float((share - 2 * rel * expect).max()) > 0, f"camera {c} contributes nothing testable"
 
 
+def test_glue_reads_nothing_back_from_the_device(monkeypatch):
+    """No host synchronisation inside the call: the glue's own lines never turn a tensor into a Python value
+    (.item(), .tolist(), bool(), int(), float(), .cpu(), .numpy()) and never call torch.linalg.inv, which on CUDA
+    synchronises to check for a singular matrix (inv_ex does not). (gsplat's isect_tiles reads its
+    intersection count back itself, once per call; the torch emulation's own reads are not the glue's.)"""
+    import sys
+
+    import ev3dgs.splat.cuda as cuda_mod
+
+    hits = []
+
+    def guard(name, orig):
+        def wrapper(*a, **k):
+            f = sys._getframe(1)
+            if f.f_code.co_filename == cuda_mod.__file__:
+                hits.append((name, f.f_lineno))
+            return orig(*a, **k)
+        return wrapper
+
+    for name in ("item", "tolist", "__bool__", "__int__", "__float__", "__index__", "cpu", "numpy"):
+        monkeypatch.setattr(torch.Tensor, name, guard(name, getattr(torch.Tensor, name)))
+    monkeypatch.setattr(torch.linalg, "inv", guard("torch.linalg.inv", torch.linalg.inv))
+    s = make_scene(4)
+    viewmats, groups = mixed_stack(s, 0, subposes=(3, 2), pairs=1)
+    for case in (CASES[0], CASES[2]):  # SH with RGB, SH with RGB+D and a background
+        lv = _leaves(s, case, viewmats)
+        img, alpha, meta = rasterization_cuda(*_args(lv, s.K, lv["viewmat"]), ops=TorchOps(), **_kw(case))
+        step_loss(img, alpha, groups, torch.Generator().manual_seed(0)).backward()
+    assert hits == []
+
+
 def test_rasterization_sends_a_stack_on_cuda_to_the_batched_glue_in_one_call(monkeypatch):
     """rasterize.rasterization(backend="cuda") with viewmat (C, 4, 4) calls cuda.rasterization_cuda once with
     the whole stack (not once per camera)."""

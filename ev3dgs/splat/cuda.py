@@ -56,7 +56,8 @@ def rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, widt
     ``.grad[c]`` is camera c's screen-space gradient), ``radii``, ``depths`` ((N,) or (C, N)), ``conics``,
     ``width``, ``height``, ``n_cameras``.
 
-    Nothing here reads a GPU value back to the host (no ``.item()``, no branch on tensor values); gsplat's
+    Nothing here reads a GPU value back to the host (no ``.item()``, no branch on tensor values, no
+    ``torch.linalg.inv``, whose singularity check synchronises: ``inv_ex``); gsplat's
     ``isect_tiles`` itself reads the intersection count back once per call to size its buffers (gsplat
     1.5.3, Intersect.cpp): once per stack, not once per camera.
 
@@ -79,7 +80,7 @@ def rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, widt
     # not be on the image's path and would get no .grad)
     means2d = means2d_g - 0.5 if batched else means2d_g[0] - 0.5
     if colors.ndim == 3:  # SH coefficients (N, K, 3), evaluated towards each camera's centre
-        campos = torch.linalg.inv(viewmats)[:, :3, 3]
+        campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]  # inv would synchronise (its singularity check)
         dirs = means[None, :, :] - campos[:, None, :]  # (C, N, 3)
         coeffs = colors[None].expand(C, *colors.shape)  # (C, N, K, 3); gsplat makes it contiguous
         colors = ops.spherical_harmonics(sh_degree, dirs, coeffs, masks=(radii > 0).all(dim=-1))
