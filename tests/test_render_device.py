@@ -1,5 +1,7 @@
 """make-dataset --render-device: the option and the scene's [render] device reach Cycles' preferences; auto
-falls back to the CPU where Cycles finds no GPU. The bpy tests run Blender in this process (no render)."""
+falls back to the CPU where Cycles finds no GPU. The bpy tests run Blender in this process (no render), so, as
+tests/test_blender.py's, they are marked slow; the default suite's tests/test_make_dataset.py quick dataset checks
+that auto rendered on a device and said which."""
 import importlib.util
 from types import SimpleNamespace
 
@@ -9,7 +11,6 @@ from ev3dgs.cli import sim as sim_cli
 from ev3dgs.errors import ConfigError
 from ev3dgs.sim.scenes import RENDER_DEVICES, Render, load_scene, resolve_render
 
-needs_bpy = pytest.mark.skipif(importlib.util.find_spec("bpy") is None, reason="bpy is not installed")
 
 
 def test_the_option_reaches_the_render_settings_and_bad_values_are_refused(tmp_path, monkeypatch, capsys):
@@ -66,7 +67,8 @@ def _gpus(kind):
         return []
 
 
-@needs_bpy
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("bpy") is None, reason="bpy is not installed")
 def test_cpu_and_auto_without_a_gpu_reach_cycles(render_mod):
     K = [[20.0, 0, 7.5], [0, 20.0, 5.5], [0, 0, 1]]
     info = render_mod.init_scene(None, {}, None, 16, 12, K, 1, False, (0, 0, 0), 0, render_device="cpu")
@@ -106,7 +108,8 @@ class FakePrefs:
         return [*self.devices.get(kind, []), self.cpu]
 
 
-@needs_bpy
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("bpy") is None, reason="bpy is not installed")
 @pytest.mark.parametrize("gpus, asked, kind", [({"CUDA": ["H100"], "OPTIX": ["H100"]}, "auto", "CUDA"),
                                                ({"OPTIX": ["RTX"]}, "auto", "OPTIX"),
                                                ({"CUDA": ["H100"], "OPTIX": ["H100"]}, "optix", "OPTIX"),
