@@ -35,6 +35,22 @@ test-slow: setup
 docs: setup
 	$(BIN)/python -m mkdocs build --strict -d site
 
+# what a GPU machine without network needs beside the repository for tools/gpu_device_run.sh (docs/gpu.md), in
+# gpu_carry/ (ignored): wheels for its Python 3.12 (gsplat, ninja and the dependencies training imports that such
+# machines lacked; not the AEDAT readers' lz4, cramjam and zstandard, which training does not import) and the lego
+# scene at DAVIS346 size (24 training views of 17 sub-frames, 8 test views; Blender on one core, resumable: a
+# second run keeps the views already rendered). Carry gpu_carry/wheels and gpu_carry/lego_346x260.h5, not the
+# folder (an interrupted render leaves its cache there).
+GPU_CARRY := gpu_carry
+.PHONY: gpu-carry
+gpu-carry: setup
+	$(BIN)/pip download --no-deps -d $(GPU_CARRY)/wheels --python-version 3.12 --only-binary=:all: \
+		--platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 --platform manylinux_2_17_x86_64 \
+		gsplat==1.5.3 plyfile==1.1.5 colour-science==0.4.7 ninja==1.13.2
+	test -f $(GPU_CARRY)/lego_346x260.h5 || $(BIN)/ev3dgs-sim make-dataset --scene lego --size 346x260 --views 24 \
+		--test-views 8 --subframes 17 --samples 16 --seed 0 --out $(GPU_CARRY)/lego_346x260.h5
+	du -sh $(GPU_CARRY)/wheels $(GPU_CARRY)/lego_346x260.h5
+
 demo: setup
 	$(BIN)/python -m ev3dgs.demo --out demo_out
 

@@ -22,7 +22,7 @@ import numpy as np
 from mathutils import Matrix
 
 from ev3dgs.geometry import blender_to_opencv, opencv_to_blender
-from ev3dgs.sim.scenes import PREFILTERS
+from ev3dgs.sim.scenes import PREFILTERS, RENDER_DEVICES
 
 from . import builders
 
@@ -77,6 +77,43 @@ def _setup_render(width, height, samples, denoise, seed, prefilter="accurate") -
     im.exr_codec = "NONE"
 
 
+# what --render-device auto tries, in order: CUDA first (Blender ships CUDA kernels for every recent NVIDIA
+# architecture), then OptiX
+AUTO_KINDS = ("CUDA", "OPTIX")
+
+
+def _cycles_preferences():
+    return bpy.context.preferences.addons["cycles"].preferences
+
+
+def setup_device(device: str = "auto") -> str:
+    """Point Cycles at a device: "cpu"; "cuda" or "optix" (that kind's GPUs, the CPU left out; RuntimeError when
+    Cycles finds none); "auto" (AUTO_KINDS in order, the first that Cycles finds, else the CPU). Sets the Cycles
+    add-on's compute_device_type and the scene's cycles.device; returns the device used ("cpu", "cuda",
+    "optix"). Call after read_factory_settings (which resets the preferences)."""
+    if device not in RENDER_DEVICES:
+        raise ValueError(f"render device must be one of {', '.join(RENDER_DEVICES)}, got {device!r}")
+    scene = bpy.context.scene
+    prefs = _cycles_preferences()
+    for kind in (() if device == "cpu" else AUTO_KINDS if device == "auto" else (device.upper(),)):
+        try:
+            found = [d for d in prefs.get_devices_for_type(kind) if d.type == kind]
+        except (TypeError, ValueError):  # a Blender built without this kind
+            found = []
+        if found:
+            prefs.compute_device_type = kind
+            for d in prefs.get_devices_for_type(kind):
+                d.use = d.type == kind
+            scene.cycles.device = "GPU"
+            return kind.lower()
+        if device != "auto":
+            raise RuntimeError(f"Cycles finds no {kind} device (render device {device!r}; 'auto' falls back to "
+                               "the CPU)")
+    prefs.compute_device_type = "NONE"
+    scene.cycles.device = "CPU"
+    return "cpu"
+
+
 def _setup_camera(K, width, height):
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3):
@@ -101,14 +138,17 @@ def _setup_camera(K, width, height):
 
 def init_scene(builder: str | None, params: dict | None, blend_path: str | None, width: int, height: int,
                K, samples: int = 16, denoise: bool = False, background=(0.05, 0.05, 0.05), seed: int = 0,
-               denoise_prefilter: str = "accurate") -> dict:
+               denoise_prefilter: str = "accurate", render_device: str = "cpu") -> dict:
     """Reset bpy and set up the scene, renderer and our camera. builder None and blend_path None gives an
     EMPTY scene (world only; used by tests). denoise_prefilter: OIDN's guide prefilter, "accurate", "fast"
-    or "none" (only with denoise). Returns {"bounds": (2,3) list, "K": 3x3 list, "build": info}."""
+    or "none" (only with denoise). render_device: see setup_device. Returns {"bounds": (2,3) list, "K": 3x3 list,
+    "build": info, "render_device": the device Cycles renders on}."""
     if builder is not None and blend_path is not None:
         raise ValueError("give either a builder or a blend_path, not both")
     if denoise_prefilter not in PREFILTERS:
         raise ValueError(f"denoise_prefilter must be one of {', '.join(PREFILTERS)}, got {denoise_prefilter!r}")
+    if render_device not in RENDER_DEVICES:
+        raise ValueError(f"render_device must be one of {', '.join(RENDER_DEVICES)}, got {render_device!r}")
     bpy.ops.wm.read_factory_settings(use_empty=True)
     info: dict = {}
     if blend_path is not None:
@@ -128,13 +168,14 @@ def init_scene(builder: str | None, params: dict | None, blend_path: str | None,
             raise ValueError(f"params given for an empty scene: {sorted(params)}")
         bounds = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
     _setup_render(width, height, samples, denoise, seed, denoise_prefilter)
+    used = setup_device(render_device)
     _setup_world(background)
     cam = _setup_camera(K, width, height)
     _STATE.clear()
     _STATE.update(camera=cam, width=int(width), height=int(height), K=np.asarray(K, dtype=np.float64).copy(),
                   background=tuple(float(c) for c in background[:3]))
     bpy.context.view_layer.update()
-    return {"bounds": bounds, "K": np.asarray(K, dtype=np.float64).tolist(), "build": info}
+    return {"bounds": bounds, "K": np.asarray(K, dtype=np.float64).tolist(), "build": info, "render_device": used}
 
 
 def render(c2w_opencv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -59,6 +59,9 @@ def test_quick_dataset_is_valid(tmp_path):
     assert sc.test.images.shape == (1, 48, 64, 3)
     assert sc.camera.background == pytest.approx((1.0, 1.0, 1.0))
     assert sc.config["render"]["width"] == 64 and sc.config["scene"] == "lego"
+    # the default render device, auto, resolved by the worker: said in the stats and the file's provenance
+    assert render.device == "auto" and stats.render_device in ("cpu", "cuda", "optix")
+    assert sc.config["render_device"] == stats.render_device and sc.config["render"]["device"] == "auto"
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # cache removed, no temp files
 
 

@@ -7,6 +7,7 @@ from .calibrate import add_calibrate_parsers
 from .common import add_output_options, dispatch, finite_float, parser, subparsers
 
 PREFILTERS = ("accurate", "fast", "none")  # ev3dgs.sim.scenes.PREFILTERS, without importing the simulator here
+RENDER_DEVICES = ("auto", "cpu", "cuda", "optix")  # ev3dgs.sim.scenes.RENDER_DEVICES, likewise
 BLENDER_EXTRA = "pip install 'ev3dgs[blender]' (bpy 5.0.1, Python 3.11)"
 
 
@@ -155,7 +156,7 @@ def _make_dataset(args) -> int:
     w, h = args.size if args.size else (None, None)
     render = resolve_render(spec, args.quick, width=w, height=h, views=args.views, test_views=args.test_views,
                             subframes=args.subframes, exposure_ms=args.exposure_ms, samples=args.samples,
-                            denoise_prefilter=args.denoise_prefilter)
+                            denoise_prefilter=args.denoise_prefilter, device=args.render_device)
     stats = make_dataset(spec, render, args.out, blend=args.blend, workers=args.workers, seed=args.seed,
                          quiet=args.quiet, keep_cache=args.keep_cache, executor=args.executor,
                          address=args.address, force=args.force)
@@ -164,7 +165,8 @@ def _make_dataset(args) -> int:
         print(f"{spec.name}: {render.views} views + {render.test_views} test views at {render.width}x{render.height}, "
               f"{render.subframes} sub-frames, {stats.events} events ({stats.views_rendered} views rendered, "
               f"{stats.views_cached} from cache); render {sec['render']:.1f} s, simulate {sec['simulate']:.2f} s, "
-              f"ISP {sec['isp']:.2f} s, write {sec['write']:.2f} s -> {stats.path}")
+              f"ISP {sec['isp']:.2f} s, write {sec['write']:.2f} s; "
+              f"{f'rendered on {stats.render_device}' if stats.render_device else 'nothing rendered'} -> {stats.path}")
     return 0
 
 
@@ -255,6 +257,10 @@ def build_parser():
     m.add_argument("--denoise-prefilter", choices=PREFILTERS,
                    help="OpenImageDenoise's albedo/normal guide prefilter (default: the scene's, accurate for "
                         "built-ins; fast with --quick)")
+    m.add_argument("--render-device", choices=RENDER_DEVICES,
+                   help="where Cycles renders: auto (a CUDA, then an OptiX GPU when Cycles finds one, else the "
+                        "CPU; the summary says which), cpu, cuda or optix (an error when Cycles finds none) "
+                        "(default: the scene's, auto for built-ins)")
     m.add_argument("--workers", type=int, default=1,
                    help="Blender processes (or Ray actors) rendering in parallel (default %(default)s)")
     m.add_argument("--executor", choices=("local", "ray"), default="local",

@@ -40,11 +40,14 @@ class DatasetStats:
     views_cached: int = 0
     events: int = 0
     seconds: dict = field(default_factory=dict)  # render, simulate, isp, write
+    render_device: str | None = None  # where Cycles rendered ("cpu", "cuda", "optix"); None: every view cached
 
 
 def _cache_key(spec: SceneSpec, render: Render, blend: Path | None, seed: int) -> str:
     h = hashlib.sha256()
-    h.update(json.dumps({"builder": spec.builder, "params": spec.params, "render": asdict(render),
+    # the device is left out: a run resumed on another device keeps the views already rendered
+    render_key = {k: v for k, v in asdict(render).items() if k != "device"}
+    h.update(json.dumps({"builder": spec.builder, "params": spec.params, "render": render_key,
                          "shake": asdict(spec.shake), "seed": seed}, sort_keys=True, default=str).encode())
     if blend is not None:
         with open(blend, "rb") as f:
@@ -195,11 +198,12 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
                        blend_path=str(blend) if blend else None, width=W, height=H, K=K.tolist(),
                        samples=render.samples, denoise=render.denoise,
                        denoise_prefilter=render.denoise_prefilter, background=list(render.background),
-                       seed=seed)
+                       seed=seed, render_device=render.device)
     t0 = time.perf_counter()
     results, info, stats.views_rendered = render_all(jobs, init_kwargs, cache, workers, quiet,
                                                      executor=executor, address=address)
     stats.views_cached = len(jobs) - stats.views_rendered
+    stats.render_device = info.get("render_device") if stats.views_rendered else None
     stats.seconds["render"] = time.perf_counter() - t0
 
     sim = DVSSimulator(H, W, spec.sensor.dvs, seed=seed, isp=spec.sensor.isp)
@@ -241,7 +245,8 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
         test=test_part,
         bounds=np.asarray(info["bounds"], np.float64) if info.get("bounds") is not None else None,
         config=provenance(spec.sensor, scene=spec.name, builder=spec.builder, params=spec.params,
-                          render=asdict(render), shake=asdict(spec.shake), seed=seed,
+                          render=asdict(render), render_device=info.get("render_device"), shake=asdict(spec.shake),
+                          seed=seed,
                           blend=str(blend) if blend else None, simulator=asdict(sim.report)),
     )
     t = time.perf_counter()

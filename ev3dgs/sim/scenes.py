@@ -24,6 +24,8 @@ from .config import SimConfig
 SCENES_DIR = Path(__file__).resolve().parent / "builtin_scenes"  # package data: ships in the wheel
 MAX_SIZE = 8192
 PREFILTERS = ("accurate", "fast", "none")
+# where Cycles renders: "auto" (a CUDA or OptiX GPU when Cycles finds one, else the CPU), or that device
+RENDER_DEVICES = ("auto", "cpu", "cuda", "optix")
 
 
 @dataclass(frozen=True)
@@ -34,6 +36,7 @@ class Render:
     samples: int = 64                 # Cycles samples per pixel
     denoise: bool = True              # OpenImageDenoise
     denoise_prefilter: str = "accurate"  # OIDN's albedo/normal guides: "accurate" (denoised first), "fast", "none"
+    device: str = "auto"              # Cycles' device, RENDER_DEVICES (not part of the render cache's key)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # linear RGB, stored in the schema
     views: int = 24                   # training views (blurry frame + events + sharp frame each)
     test_views: int = 6               # sharp novel views
@@ -50,6 +53,8 @@ class Render:
         check(1 <= self.samples <= 1 << 16, "render.samples must be in [1, 65536]")
         check(self.denoise_prefilter in PREFILTERS,
               f"render.denoise_prefilter must be one of {', '.join(PREFILTERS)}, got {self.denoise_prefilter!r}")
+        check(self.device in RENDER_DEVICES,
+              f"render.device must be one of {', '.join(RENDER_DEVICES)}, got {self.device!r}")
         check(all(0 <= c <= 1 for c in self.background), "render.background values must be in [0, 1]")
         check(1 <= self.views <= 10000, "render.views must be in [1, 10000]")
         check(0 <= self.test_views <= 10000, "render.test_views must be in [0, 10000]")

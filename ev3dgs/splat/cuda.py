@@ -6,6 +6,15 @@ step by step so that ``meta["means2d"]`` is the tensor the rasterizer reads: its
 ``retain_grad()``) is the screen-space gradient densification needs. (Taking ``meta["means2d"][0]`` from
 `rasterization()` gives a view that nothing downstream uses, whose ``.grad`` stays None.)
 
+A stack of C cameras (viewmat (C, 4, 4): every sub-pose and event-pair pose of a training step) goes through
+the same five calls once, with viewmats (C, 4, 4) and Ks (C, 3, 3): ``meta["means2d"]`` is (C, N, 2) and its
+``.grad[c]`` camera c's screen-space gradient. Densification (ev3dgs.splat.strategy, as gsplat 1.5.3's
+DefaultStrategy) takes, per camera and Gaussian visible in it, the norm of that camera's gradient scaled by
+(W/2, H/2), sums these norms over cameras and counts the cameras that see the Gaussian; the mean is norm sum /
+count. (gsplat's strategy also multiplies by n_cameras because its loss averages over the C images; ours takes
+a ``grad_scale`` instead.) So the gradients must stay per camera: the norm of a sum over cameras is not the sum
+of the norms.
+
 Convention differences from the `reference` backend, each pinned by tests/test_gsplat_parity.py on the CPU
 (gsplat's torch reference functions fed the exact arguments built here) and tests marked ``gpu``:
 
@@ -38,36 +47,63 @@ TILE_SIZE = 16
 
 def rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, width, height, *, sh_degree,
                        near_plane, far_plane, eps2d, background, render_mode, ops=None):
-    """One camera (viewmat (4, 4)). ``ops``: a namespace with gsplat's `fully_fused_projection`,
-    `spherical_harmonics`, `isect_tiles`, `isect_offset_encode`, `rasterize_to_pixels` (default: gsplat itself;
-    the parity tests pass torch implementations)."""
+    """One camera (viewmat (4, 4)) or a stack of C cameras (viewmat (C, 4, 4)), rendered by one sequence of
+    gsplat calls either way: projection of all C cameras, SH, tile intersection over all C images, one
+    rasterizer call. K: (3, 3) shared by every camera, or (C, 3, 3).
+
+    Returns image (H, W, D) / alpha (H, W, 1) for one camera, (C, H, W, D) / (C, H, W, 1) for a stack, and meta
+    with ``means2d`` ((N, 2) or (C, N, 2): the tensor the rasterizer reads, so after ``retain_grad()`` its
+    ``.grad[c]`` is camera c's screen-space gradient), ``radii``, ``depths`` ((N,) or (C, N)), ``conics``,
+    ``width``, ``height``, ``n_cameras``.
+
+    Nothing here reads a GPU value back to the host (no ``.item()``, no branch on tensor values, no
+    ``torch.linalg.inv``, whose singularity check synchronises: ``inv_ex``); gsplat's
+    ``isect_tiles`` itself reads the intersection count back once per call to size its buffers (gsplat
+    1.5.3, Intersect.cpp): once per stack, not once per camera.
+
+    ``ops``: a namespace with gsplat's `fully_fused_projection`, `spherical_harmonics`, `isect_tiles`,
+    `isect_offset_encode`, `rasterize_to_pixels` (default: gsplat itself; the parity tests pass torch
+    implementations)."""
     if ops is None:
         import gsplat as ops
 
-    Kg = K.detach().clone()
-    Kg[0, 2] += 0.5  # gsplat's pixel centres are at +0.5
-    Kg[1, 2] += 0.5
+    batched = viewmat.ndim == 3
+    viewmats = viewmat if batched else viewmat[None]
+    C = viewmats.shape[0]
+    Ks = K.detach() if K.ndim == 3 else K.detach()[None].expand(C, 3, 3)
+    Kg = Ks + Ks.new_tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]])  # gsplat's pixel centres: +0.5
     radii, means2d_g, depths, conics, _ = ops.fully_fused_projection(
-        means, None, quats, scales, viewmat[None], Kg[None], width, height, eps2d=eps2d, near_plane=near_plane,
+        means, None, quats, scales, viewmats, Kg.contiguous(), width, height, eps2d=eps2d, near_plane=near_plane,
         far_plane=far_plane, packed=False, opacities=opacities)
-    means2d = means2d_g[0] - 0.5  # our pixel convention; the rasterizer below reads exactly this tensor
-    if colors.ndim == 3:  # SH coefficients (N, K, 3), evaluated towards the camera centre
-        campos = torch.linalg.inv(viewmat)[:3, 3]
-        colors = ops.spherical_harmonics(sh_degree, means - campos, colors, masks=(radii[0] > 0).all(dim=-1))
-        colors = torch.clamp_min(colors + 0.5, 0.0)
+    # our pixel convention; the rasterizer below reads exactly this tensor (shifted back), so its .grad is the
+    # screen-space gradient: (C, N, 2) for a stack, (N, 2) for one camera (a [0] view of a (1, N, 2) tensor would
+    # not be on the image's path and would get no .grad)
+    means2d = means2d_g - 0.5 if batched else means2d_g[0] - 0.5
+    if colors.ndim == 3:  # SH coefficients (N, K, 3), evaluated towards each camera's centre
+        campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]  # inv would synchronise (its singularity check)
+        dirs = means[None, :, :] - campos[:, None, :]  # (C, N, 3)
+        coeffs = colors[None].expand(C, *colors.shape)  # (C, N, K, 3); gsplat makes it contiguous
+        colors = ops.spherical_harmonics(sh_degree, dirs, coeffs, masks=(radii > 0).all(dim=-1))
+        colors = torch.clamp_min(colors + 0.5, 0.0)  # (C, N, 3)
+    else:
+        colors = colors[None].expand(C, *colors.shape)  # (C, N, D)
     bg = background
     if render_mode == "RGB+D":  # the alpha-weighted camera z, zero background
-        colors = torch.cat([colors, depths[0, :, None].to(colors.dtype)], dim=-1)
+        colors = torch.cat([colors, depths[..., None].to(colors.dtype)], dim=-1)
         if bg is not None:
             bg = torch.cat([bg, bg.new_zeros(1)])
     tiles_x, tiles_y = math.ceil(width / TILE_SIZE), math.ceil(height / TILE_SIZE)
-    m2d = (means2d + 0.5)[None]
+    m2d = means2d + 0.5 if batched else (means2d + 0.5)[None]
     _, isect_ids, flatten_ids = ops.isect_tiles(m2d, radii, depths, TILE_SIZE, tiles_x, tiles_y, packed=False,
-                                                n_images=1)
-    offsets = ops.isect_offset_encode(isect_ids, 1, tiles_x, tiles_y).reshape(1, tiles_y, tiles_x)
-    image, alpha = ops.rasterize_to_pixels(m2d, conics, colors[None], opacities[None], width, height, TILE_SIZE,
-                                           offsets, flatten_ids, backgrounds=None if bg is None else bg[None],
-                                           packed=False)
-    meta = {"means2d": means2d, "radii": radii[0].max(dim=-1).values, "depths": depths[0], "conics": conics[0],
-            "width": width, "height": height, "n_cameras": 1}
-    return image[0], alpha[0], meta
+                                                n_images=C)
+    offsets = ops.isect_offset_encode(isect_ids, C, tiles_x, tiles_y).reshape(C, tiles_y, tiles_x)
+    images, alphas = ops.rasterize_to_pixels(
+        m2d, conics, colors.contiguous(), opacities[None].expand(C, -1).contiguous(), width, height, TILE_SIZE,
+        offsets, flatten_ids, backgrounds=None if bg is None else bg[None].expand(C, -1).contiguous(),
+        packed=False)
+    meta = {"means2d": means2d, "radii": radii.max(dim=-1).values, "depths": depths, "conics": conics,
+            "width": width, "height": height, "n_cameras": C}
+    if not batched:
+        meta.update(radii=meta["radii"][0], depths=depths[0], conics=conics[0])
+        return images[0], alphas[0], meta
+    return images, alphas, meta

@@ -11,10 +11,11 @@ the projected `means2d` (whose .grad feeds densification), `radii`, `depths`, `w
 Batched: viewmat (C,4,4) renders C cameras at once: image (C,H,W,D), alpha (C,H,W,1), meta means2d (C,N,2),
 radii/depths (C,N), n_cameras C. On "cpu" that is one numba projection + SH kernel for all cameras
 (project_cpu.py, hand-written backward), one binning pass and one rasterizer kernel over (camera, tile); each
-camera's image and gradients are bitwise those of its own single-camera call. "reference" loops over the
-cameras inside the call, rasterizing each from its slice of one stacked (C,N,2) means2d; a backend without a
-batched call loops over single-camera calls and hooks each camera's gradient into the stacked means2d. On
-every backend, after backward, meta["means2d"].grad holds every camera's screen-space gradient (C,N,2).
+camera's image and gradients are bitwise those of its own single-camera call. On "cuda" one sequence of gsplat
+calls renders the stack (cuda.py). "reference" loops over the cameras inside the call, rasterizing each from its
+slice of one stacked (C,N,2) means2d; a backend without a batched call loops over single-camera calls and hooks
+each camera's gradient into the stacked means2d. On every backend, after backward, meta["means2d"].grad holds
+every camera's screen-space gradient (C,N,2).
 
 Backends: "reference" (plain torch, the test oracle), "cpu" (numba kernels, exact), "cuda" (gsplat, when
 CUDA and gsplat are available), "auto" (cuda for CUDA tensors when possible, else cpu). Every backend
@@ -75,6 +76,12 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
     if backend == "cpu" and not (K.requires_grad or means.is_cuda):
         return _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree,
                                   near_plane, far_plane, eps2d, background, render_mode, threads)
+    if backend == "cuda":  # one camera or a stack (C, 4, 4): one sequence of gsplat calls either way
+        from .cuda import rasterization_cuda
+
+        return rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                                  sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
+                                  background=background, render_mode=render_mode)
     if viewmat.ndim == 3:  # one camera at a time inside this call (the oracle for the batched cpu path)
         kw = dict(sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
                   background=background, render_mode=render_mode)
@@ -83,12 +90,6 @@ def rasterization(means, quats, scales, opacities, colors, viewmat, K, width: in
                                                     height, **kw)
         return _rasterization_loop(means, quats, scales, opacities, colors, viewmat, K, width, height,
                                    backend=backend, threads=threads, **kw)
-    if backend == "cuda":
-        from .cuda import rasterization_cuda
-
-        return rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                                  sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
-                                  background=background, render_mode=render_mode)
     proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height,
                              near=near_plane, far=far_plane, eps2d=eps2d)
     if colors.ndim == 3:
