@@ -8,8 +8,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ev3dgs.calib.noise import refractory
-from ev3dgs.calib.thresholds import _mismatch, invert_moments, mismatch_moments, model_moments
 from ev3dgs.events import Events
 
 
@@ -18,6 +16,8 @@ from ev3dgs.events import Events
 def test_moment_inversion_recovers_the_clipped_normal(c, share):
     """invert_moments undoes model_moments (the harmonic mean and the count-weighted spread) for every
     threshold and mismatch the study covers, clipping at the simulator's floor included."""
+    from ev3dgs.calib.thresholds import invert_moments, model_moments
+
     h, v = model_moments(c, share * c)
     c2, s2 = invert_moments(h, v)
     assert c2 == pytest.approx(c, rel=1e-5, abs=1e-7)
@@ -41,6 +41,8 @@ def test_mismatch_from_pair_products_monte_carlo(c, share):
     """Every pixel with two or more pairs counts, even with a handful of events: 1500 pixels, 6 pairs, about 2
     events per pair. The estimate (bias-corrected, see thresholds._mismatch) must lie within 4 bootstrap s.e.
     of the truth; the nominal threshold with the harmonic-mean correction likewise."""
+    from ev3dgs.calib.thresholds import _mismatch, mismatch_moments
+
     rng = np.random.default_rng(7)
     P, K = 1500, 6
     sig = share * c
@@ -107,6 +109,8 @@ def test_refractory_is_the_onset_not_a_quantile():
     edges fast enough to hit the refractory limit (C/g < 0.2 R), and 0.02 % are early outliers (noise events
     inside the hold). The 0.2 % quantile sits above 1.5 R; the onset is R, within 4 s.e. plus the fastest
     edges' C/g (0.2 R)."""
+    from ev3dgs.calib.noise import refractory
+
     rng = np.random.default_rng(3)
     R = 800.0
     pix = []
@@ -128,6 +132,8 @@ def test_refractory_is_the_onset_not_a_quantile():
 
 def test_refractory_without_onset_is_an_upper_bound():
     """Poisson-like intervals from 0 up (no refractory limit, no edge): the upper-bound wording, not an onset."""
+    from ev3dgs.calib.noise import refractory
+
     rng = np.random.default_rng(4)
     pix = [np.maximum(np.round(rng.exponential(20000, 60)), 1) for _ in range(2000)]
     v = refractory(_iei_recording(pix), None, np.random.default_rng(0), boot=10)

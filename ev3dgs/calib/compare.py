@@ -2,12 +2,13 @@
 real events.
 
 Re-simulation. The APS frames, their noise taken out of static stretches (denoise_frames), as linear
-intensity (DN - dark) / (full scale - dark), are fed to the DVS simulator at their exposure midpoints; the simulator moves each pixel's log intensity linearly between two
-frames, so the scene is interpolated in log space between exposure midpoints. The frame rate limits what can
-be compared: whatever happens between two frames (a reversal, an edge crossing several pixels, flicker) is
-replaced by a straight line in log intensity, event timing inside a frame interval is the interpolation's,
-not the scene's. So the comparison is made per frame pair (counts), on
-static regions (noise), and in distributions (polarity, inter-event intervals), not event by event.
+intensity (DN - dark) / (full scale - dark), are fed to the DVS simulator at their exposure midpoints; the
+simulator moves each pixel's log intensity linearly between two frames, so the scene is interpolated in log
+space between exposure midpoints. The frame rate limits what can be compared: whatever happens between two
+frames (a reversal, an edge crossing several pixels, flicker) is replaced by a straight line in log
+intensity, event timing inside a frame interval is the interpolation's, not the scene's. So the comparison
+is made per frame pair (counts), on static regions (noise), and in distributions (polarity, inter-event
+intervals), not event by event.
 
 Metrics (real vs simulated), all between the first and last exposure midpoint:
 

@@ -94,15 +94,17 @@ def hot_pixels(rec: Recording, on, off, T: float, curve: tuple[float, float], c_
     only: pairs in which neither it nor any of its 8 neighbours changes by more than a quarter of the smaller
     threshold (plus 2 frame-noise standard deviations), and neither do the pairs before and after (a
     turning point of the motion inside a pair shows there). In those pairs a pixel is hot when
-      * its count exceeds what the background (the static pixels' quiet-pair rate) and the APS-predicted signal
-        (sum (|dL| - 2 s.d.) / C over its quiet pairs) explain, beyond the 1e-3 / P Poisson tail and by HOT_FACTOR;
-      * it exceeds NB_FACTOR times the median of its 8 neighbours' counts in the same pairs, and their tail, (textured
-        pixels whose sub-frame motion the frames do not resolve fire together with their neighbours);
+      * its count exceeds what the background (the static pixels' quiet-pair rate) and the APS-predicted
+        signal (sum (|dL| - 2 s.d.) / C over its quiet pairs) explain, beyond the 1e-3 / P Poisson tail and
+        by HOT_FACTOR;
+      * it exceeds NB_FACTOR times the median of its 8 neighbours' counts in the same pairs, and their
+        Poisson tail (textured pixels whose sub-frame motion the frames do not resolve fire together with
+        their neighbours);
       * its rate is steady: the counts over its quiet pairs are Poisson (index of dispersion within 4
         standard errors of 1), not bursts, and both halves of its quiet pairs hold events.
     A pixel with fewer than MIN_QUIET quiet pairs (the scene never rests there) is hot when its count over
-    every pair exceeds twice HOT_FACTOR times its neighbours' median and their Poisson tail, in both halves. `on`, `off`, `T`, `static` are kept for the
-    callers; the counts per pair come from the recording."""
+    every pair exceeds twice HOT_FACTOR times its neighbours' median and their Poisson tail, in both halves.
+    The counts per pair come from the recording; `on` + `off` order the list, `static` gives the background."""
     from scipy.stats import poisson
 
     from .aps import pair_counts

@@ -45,10 +45,13 @@ dark 0, then dark levels at the default knee) that makes the thresholds fitted i
 (terciles) agree best. The two cannot be told apart from frames and counts alone: a knee above the default
 means the event pixels lose contrast at the dark end faster than the APS does.
 
-Mismatch: per-pixel thresholds from the first and the second half of the recording (time halves, so that
-their residual and frame noise are independent); the covariance over pixels of the two half estimates is the
-variance of the pixels' true thresholds (their noise does not correlate). The global ratio of sums is a
-count-weighted (harmonic) mean, C (1 - sigma^2 / C^2) to second order; it is corrected by + sigma^2 / C.
+Mismatch: from the products of the residuals e = dL - C_on N_on + C_off N_off of every two selected frame
+pairs of a pixel at least two pairs apart, against the products of their counts (see _mismatch for the
+derivation): every pixel with two such pairs counts, whatever its number of events. The count weights (pixels
+with a low threshold fire more) and the ratio of sums (a harmonic mean: C (1 - sigma^2 / C^2) to second
+order) bias both the spread and the thresholds; invert_moments removes both for the simulator's clipped
+normal draws. The pair trim and the outlier test allow for the mismatch (a second pass), since a pixel far
+from the mean threshold with many events is neither a bad pair nor an outlier.
 
 Uncertainties: bootstrap over pixels (the dark level refitted in every resample).
 """
