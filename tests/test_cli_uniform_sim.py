@@ -182,7 +182,7 @@ def test_summary_without_quiet(name, tmp_path, capsys, fake_blender):
     assert str(out) in text and text.endswith("\n")
 
 
-@pytest.mark.parametrize("existing", ["rec.trajectory.npz", "rec.calibration.toml"])
+@pytest.mark.parametrize("existing", ["rec.trajectory.npz", "rec.calibration.toml", "rec.sensor.toml"])
 def test_record_refuses_an_existing_ground_truth(existing, tmp_path, capsys, fake_blender):
     main, argv, _, _, _ = COMMANDS["sim record"]
     (tmp_path / existing).write_bytes(b"earlier ground truth")

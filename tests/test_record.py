@@ -268,7 +268,14 @@ def test_record_small_end_to_end(tmp_path):
                samples=4)
     assert s["frames"] == 6 and s["imu"] == 601 and s["events"] > 0 and s["rendered"] == 61
     assert set(s["seconds"]) >= {"render", "events", "frames", "imu", "write"}
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.aedat4", "rec.calibration.toml", "rec.trajectory.npz"]   # cache removed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.aedat4", "rec.calibration.toml", "rec.sensor.toml",
+                                                          "rec.trajectory.npz"]   # cache removed
+    from ev3dgs.calib.sensor import load_sensor_toml
+    from ev3dgs.sim.scenes import load_scene
+
+    sensor = load_sensor_toml(tmp_path / "rec.sensor.toml")          # what `ingest davis --sensor` reads
+    dvs = load_scene("lego").sensor.dvs
+    assert (sensor.pos_threshold, sensor.neg_threshold) == (dvs.pos_threshold, dvs.neg_threshold)
 
     r, ev, frames, imu, _ = read_dv(out)
     assert r.getEventResolution() == (96, 72) and r.getFrameResolution() == (96, 72)

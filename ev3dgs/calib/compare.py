@@ -1,13 +1,14 @@
 """`ev3dgs-sim compare`: re-simulate a recording's events from its own APS frames and hold them against the
 real events.
 
-Re-simulation. The APS frames, as linear intensity (DN - dark) / (full scale - dark), are fed to the DVS
-simulator at their exposure midpoints; the simulator moves each pixel's log intensity linearly between two
-frames, so the scene is interpolated in log space between exposure midpoints. The frame rate limits what can
-be compared: whatever happens between two frames (a reversal, an edge crossing several pixels, flicker) is
-replaced by a straight line in log intensity, event timing inside a frame interval is the interpolation's,
-not the scene's, and APS frame noise enters as signal. So the comparison is made per frame pair (counts), on
-static regions (noise), and in distributions (polarity, inter-event intervals), not event by event.
+Re-simulation. The APS frames, their noise taken out of static stretches (denoise_frames), as linear
+intensity (DN - dark) / (full scale - dark), are fed to the DVS simulator at their exposure midpoints; the
+simulator moves each pixel's log intensity linearly between two frames, so the scene is interpolated in log
+space between exposure midpoints. The frame rate limits what can be compared: whatever happens between two
+frames (a reversal, an edge crossing several pixels, flicker) is replaced by a straight line in log
+intensity, event timing inside a frame interval is the interpolation's, not the scene's. So the comparison
+is made per frame pair (counts), on static regions (noise), and in distributions (polarity, inter-event
+intervals), not event by event.
 
 Metrics (real vs simulated), all between the first and last exposure midpoint:
 
@@ -47,10 +48,51 @@ def dark_from_toml(path) -> float | None:
     return float(m.group(1)) if m else None
 
 
-def resimulate(rec: Recording, cfg, dark: float = 0.0, seed: int = 0) -> Events:
-    """The simulator's events from the recording's APS frames (linear, fed at the exposure midpoints)."""
+HOLD_SIGMAS = 4.0       # denoise_frames: a change below this many frame-noise s.d. is not a change
+
+
+def denoise_frames(rec: Recording, sigmas: float = HOLD_SIGMAS) -> np.ndarray:
+    """(F, H, W) DN with the APS frame noise taken out of static stretches, so that the re-simulation's
+    static pixels do not fire on frame noise (the real sensor never sees it).
+
+    Method: per pixel, consecutive frames form one stretch while each new frame lies within `sigmas` frame-
+    noise standard deviations of the stretch's running mean (the noise of the mean included: sigma
+    sqrt(1 + 1/n)); every frame of a stretch is replaced by the stretch's mean. The noise is the measured one
+    (thresholds.frame_noise, by intensity). Why this and not a temporal low-pass: a low-pass also smooths
+    real changes and spreads an edge's events over several frame intervals; here a change larger than the
+    noise passes at once and whole, a static pixel becomes exactly constant (no event but the sensor's own
+    noise), and a slow drift still arrives, in steps of a few noise s.d. At 4 s.d. a static pixel breaks its
+    stretch by noise alone with probability 6e-5 per frame."""
+    from .thresholds import frame_noise
+
+    F = rec.frames
+    n_f = len(F)
+    X = F.reshape(n_f, -1)
+    centres, noise = frame_noise(rec)
+    label = np.zeros(X.shape, np.int64)
+    s, n = X[0].copy(), np.ones(X.shape[1])
+    for f in range(1, n_f):
+        m = s / n
+        brk = np.abs(X[f] - m) > sigmas * np.interp(m, centres, noise) * np.sqrt(1 + 1 / n)
+        label[f] = label[f - 1] + brk
+        s = np.where(brk, X[f], s + X[f])
+        n = np.where(brk, 1.0, n + 1)
+    P = X.shape[1]
+    key = label * P + np.arange(P)[None, :]
+    u, inv = np.unique(key.ravel(), return_inverse=True)
+    means = np.bincount(inv, weights=X.ravel()) / np.bincount(inv)
+    return means[inv].reshape(F.shape)
+
+
+def resimulate(rec: Recording, cfg, dark: float = 0.0, seed: int = 0, denoise: bool = True) -> Events:
+    """The simulator's events from the recording's APS frames (linear, fed at the exposure midpoints), the
+    frames' noise taken out of static stretches first (denoise_frames; denoise=False: as recorded)."""
+    from dataclasses import replace as _replace
+
     from ..sim.dvs import simulate_events
 
+    if denoise:
+        rec = _replace(rec, frames=denoise_frames(rec))
     frames = rec.intensity(dark).astype(np.float32)
     ev = simulate_events(frames, rec.t_mid, cfg.dvs, seed=seed, isp=cfg.isp)
     return Events(ev.t, ev.x, ev.y, ev.p)
@@ -96,13 +138,14 @@ def _hot(rec: Recording, ev: Events, dark: float, knee: float, c_on: float, c_of
     return hot_pixels(r, on, off, T, (dark, knee), c_on, c_off, static)
 
 
-def compare(rec: Recording, cfg, dark: float = 0.0, seed: int = 0, sim: Events | None = None) -> dict:
+def compare(rec: Recording, cfg, dark: float = 0.0, seed: int = 0, sim: Events | None = None,
+            denoise: bool = True) -> dict:
     """Numbers of the comparison (see the module doc); `sim` = already re-simulated events."""
     from .noise import static_mask
 
     if not 0 <= dark < rec.full_scale - 1:
         raise InputError(f"APS dark level {dark} DN is outside [0, {rec.full_scale - 1:g})")
-    sim = resimulate(rec, cfg, dark, seed) if sim is None else sim
+    sim = resimulate(rec, cfg, dark, seed, denoise) if sim is None else sim
     srec = replace(rec, events=sim)
     H, W, P = rec.height, rec.width, rec.width * rec.height
     T = (rec.t_mid[-1] - rec.t_mid[0]) * 1e-6
@@ -124,8 +167,8 @@ def compare(rec: Recording, cfg, dark: float = 0.0, seed: int = 0, sim: Events |
                  "limits": (f"the simulation sees the scene only through {len(rec.t_mid)} APS frames, one every "
                             f"{dt_ms:.1f} ms, interpolated linearly in log intensity between exposure midpoints: "
                             "changes between frames (reversals, fast edges, flicker) are not simulated, event "
-                            "times inside a frame interval are the interpolation's and APS frame noise enters as "
-                            "signal; so counts are compared per frame pair, not event by event")}
+                            "times inside a frame interval are the interpolation's (APS frame noise is taken out of "
+                            "static stretches first); so counts are compared per frame pair, not event by event")}
     cm = {}
     for name, r, s in (("on", r_on, s_on), ("off", r_off, s_off), ("all", r_on + r_off, s_on + s_off)):
         r, s = r[:, keep], s[:, keep]

@@ -11,12 +11,12 @@ events only at rate_hz. So the OFF rate of static pixels gives the shot noise an
 undoing the resets by shot noise: see invert_leak).
 What the intensities of the static pixels do not span is not estimated.
 
-Hot pixels: Poisson outliers, more events than 5 times what the background and the APS-predicted signal
-explain, and beyond the 1e-3 / P Poisson tail. They are listed and left out of every fit.
+Hot pixels: by their own signature, a steady rate that does not follow the APS signal (see hot_pixels). They
+are listed and left out of every fit.
 
-Refractory period: the short end of the inter-event-interval (IEI) histogram of every pixel pooled: its
-0.2 % quantile. With the simulator's refractory semantics a burst at log slope g has intervals of R + C/g, so
-this is R plus the fastest edges' C/g: an upper bound that the fastest edges make tight.
+Refractory period: the onset of the inter-event-interval (IEI) histogram of every pixel pooled (see
+refractory). With the simulator's refractory semantics a burst at log slope g has intervals of R + C/g, so the
+onset is R plus the fastest edges' C/g: tight when the fastest edges hit the refractory limit.
 """
 from __future__ import annotations
 
@@ -28,8 +28,13 @@ from .aps import Recording, pixel_index
 from .thresholds import Value, log_intensity
 
 IEI_QUANTILE = 0.002
+IEI_WINDOW = 0.005          # the onset is fitted in the shortest 0.5 % of the intervals ...
+MIN_WINDOW = 200            # ... at least this many
+ONSET_JUMP = 5.0            # an onset: the density of intervals jumps by this factor over the floor below
 MIN_IEI = 2000
 HOT_FACTOR = 5.0
+NB_FACTOR = 3.0          # ... and this many times its neighbours' count in the same pairs
+MIN_QUIET = 2            # a pixel needs this many quiet frame pairs to be judged hot or not
 MIN_SHOT_EVENTS = 5
 
 
@@ -83,29 +88,102 @@ def static_mask(rec: Recording, curve: tuple[float, float], c_min: float) -> np.
 
 def hot_pixels(rec: Recording, on, off, T: float, curve: tuple[float, float], c_on: float, c_off: float,
                static: np.ndarray):
-    """(mask of hot pixels, list of (x, y, rate Hz)) among pixels whose APS predicts their signal."""
+    """(mask of hot pixels, list of (x, y, rate Hz)): pixels whose events do not follow the APS signal.
+
+    A hot pixel fires at its own steady rate whatever the scene does, so it is judged on its quiet frame pairs
+    only: pairs in which neither it nor any of its 8 neighbours changes by more than a quarter of the smaller
+    threshold (plus 2 frame-noise standard deviations), and neither do the pairs before and after (a
+    turning point of the motion inside a pair shows there). In those pairs a pixel is hot when
+      * its count exceeds what the background (the static pixels' quiet-pair rate) and the APS-predicted
+        signal (sum (|dL| - 2 s.d.) / C over its quiet pairs) explain, beyond the 1e-3 / P Poisson tail and
+        by HOT_FACTOR;
+      * it exceeds NB_FACTOR times the median of its 8 neighbours' counts in the same pairs, and their
+        Poisson tail (textured pixels whose sub-frame motion the frames do not resolve fire together with
+        their neighbours);
+      * its rate is steady: the counts over its quiet pairs are Poisson (index of dispersion within 4
+        standard errors of 1), not bursts, and both halves of its quiet pairs hold events.
+    A pixel with fewer than MIN_QUIET quiet pairs (the scene never rests there) is hot when its count over
+    every pair exceeds twice HOT_FACTOR times its neighbours' median and their Poisson tail, in both halves.
+    The counts per pair come from the recording; `on` + `off` order the list, `static` gives the background."""
     from scipy.stats import poisson
 
+    from .aps import pair_counts
+    from .thresholds import frame_noise
+
     dark, knee = curve
+    H, W = rec.height, rec.width
+    P = H * W
     F = rec.frames.reshape(len(rec.frames), -1)
     valid = rec.valid(dark).reshape(len(F), -1)
     L = log_intensity(F, dark, knee, rec.full_scale)
     dL = np.diff(L, axis=0)
-    v = valid[1:] & valid[:-1]
-    from .thresholds import TAU_SIGMAS, frame_noise
-
     rel = np.interp(F, *frame_noise(rec)) / np.maximum(F - dark, knee * (rec.full_scale - dark))
-    big = np.abs(dL) > TAU_SIGMAS * np.sqrt(rel[1:] ** 2 + rel[:-1] ** 2)   # frame noise predicts no events
-    pred = np.where(v & big, np.where(dL > 0, dL / c_on, -dL / c_off), 0.0).sum(0)
-    n = on + off
-    rates = n[static] / T
-    base = float(np.mean(rates[rates <= np.percentile(rates, 99.9)])) if static.any() else float(np.median(n) / T)
-    expected = base * T + pred
-    P = len(n)
+    sd = np.sqrt(rel[1:] ** 2 + rel[:-1] ** 2)
+    c_min = min(c_on, c_off)
+    v = valid[1:] & valid[:-1]
+    still = v & (np.abs(dL) <= 0.25 * c_min + 2 * sd)
+    K = len(dL)
+    s3 = still.reshape(K, H, W)
+    pad = np.pad(s3, ((0, 0), (1, 1), (1, 1)), constant_values=True)
+    quiet3 = np.ones_like(s3)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            quiet3 &= pad[:, dy:dy + H, dx:dx + W]
+    quiet = quiet3.reshape(K, P)
+    quiet[1:] &= still[:-1]
+    quiet[:-1] &= still[1:]
+    p_on, p_off = pair_counts(rec)
+    n = (p_on + p_off).astype(float)                      # (K, P)
+    dt = np.diff(rec.t_mid.astype(np.float64))[:, None] * 1e-6
+    kq = quiet.sum(0)
+    nq = (n * quiet).sum(0)
+    tq = (dt * quiet).sum(0)
+    judged = kq >= MIN_QUIET
+    if not judged.any():
+        return np.zeros(P, bool), []
+    rate_q = np.where(judged, nq / np.maximum(tq, 1e-12), 0.0)
+    # the background: the quiet-pair rate of the static pixels (the rest fire with sub-frame motion too, which
+    # the neighbour test below handles), else the lower quartile of every pixel's
+    ref = judged & np.asarray(static, bool)
+    base = float(np.median(rate_q[ref])) if ref.sum() >= 50 else float(np.percentile(rate_q[judged], 25))
+    # the change the frames see beyond their noise, in thresholds (a quiet pair's |dL| is mostly frame noise)
+    signal = (np.clip(np.abs(dL) - 2 * sd, 0.0, None) * quiet / np.where(dL > 0, c_on, c_off)).sum(0)
+    expected = base * tq + signal
     limit = poisson.isf(1e-3 / P, np.maximum(expected, 1e-9))
-    hot = valid.all(0) & (n > limit) & (n > HOT_FACTOR * np.maximum(expected, 1.0))
+    # the neighbours' counts in this pixel's quiet pairs
+    n3 = np.pad(n.reshape(K, H, W), ((0, 0), (1, 1), (1, 1)), mode="edge")
+    nb = []
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            if dy == 1 and dx == 1:
+                continue
+            nb.append((n3[:, dy:dy + H, dx:dx + W].reshape(K, P) * quiet).sum(0))
+    nb_med = np.median(np.stack(nb), 0)
+    # steadiness: Poisson counts over the quiet pairs, events in both halves of them
+    m = nq / np.maximum(kq, 1)
+    var = (((n - m) ** 2) * quiet).sum(0) / np.maximum(kq - 1, 1)
+    disp = var / np.maximum(m, 1e-12)
+    steady = disp <= 1 + 4 * np.sqrt(2.0 / np.maximum(kq - 1, 1))
+    order = np.cumsum(quiet, 0)
+    first = quiet & (order <= (kq[None, :] + 1) // 2)
+    n1 = (n * first).sum(0)
+    both = (n1 > 0) & (nq - n1 > 0)
+    hot = (judged & (nq > limit) & (nq > HOT_FACTOR * np.maximum(expected, 1.0))
+           & (nq > NB_FACTOR * np.maximum(nb_med, 1.0)) & (nq > poisson.isf(1e-3 / P, np.maximum(nb_med, 1.0)))
+           & steady & both)
+    # a pixel the scene never leaves quiet for MIN_QUIET pairs: against its neighbours over every pair (they
+    # see the same motion and texture), by twice the factor, and in both halves of the recording
+    nt = n.sum(0)
+    nb_all = np.median(np.stack([n3[:, dy:dy + H, dx:dx + W].reshape(K, P).sum(0)
+                                 for dy in (0, 1, 2) for dx in (0, 1, 2) if (dy, dx) != (1, 1)]), 0)
+    half = n[: K // 2].sum(0)
+    lim_all = poisson.isf(1e-3 / P, np.maximum(nb_all, 1.0))
+    busy = (~judged & valid.all(0) & (nt > lim_all) & (nt > 2 * HOT_FACTOR * np.maximum(nb_all, 1.0))
+            & (half > 0) & (nt - half > 0))
+    hot |= busy
     idx = np.flatnonzero(hot)
-    lst = [(int(i % rec.width), int(i // rec.width), float(n[i] / T)) for i in idx[np.argsort(-n[idx])]]
+    tot = np.asarray(on) + np.asarray(off)
+    lst = [(int(i % W), int(i // W), float(nq[i] / tq[i])) for i in idx[np.argsort(-tot[idx])]]
     return hot, lst
 
 
@@ -293,23 +371,62 @@ def iei_by_pixel(rec: Recording, exclude: np.ndarray | None = None) -> tuple[np.
     return np.diff(t)[same], pix[1:][same]
 
 
+def onset(t: np.ndarray) -> float:
+    """The first point where the density of the sorted intervals t jumps: the local density over the next m
+    intervals (m = max(10, 2 % of them)) exceeds ONSET_JUMP times the mean density of all intervals below
+    the point (the floor of early outliers), and stays so for the next m. nan if there is no such point."""
+    x = np.sort(np.asarray(t, float))
+    n = len(x)
+    m = max(10, int(0.02 * n))
+    if n < 3 * m:
+        return float("nan")
+    j = np.arange(n - 2 * m)
+    local = m / (x[j + m] - x[j] + 1.0)
+    local2 = m / (x[j + 2 * m] - x[j + m] + 1.0)
+    floor = (j + 1) / (x[j] + 1.0)
+    ok = (local > ONSET_JUMP * floor) & (local2 > ONSET_JUMP * floor)
+    ok[0] = False   # the first interval has no floor below it
+    return float(x[np.argmax(ok)]) if ok.any() else float("nan")
+
+
 def refractory(rec: Recording, exclude, rng, boot: int = 200) -> Value:
+    """The refractory period from the onset of the same-pixel interval histogram.
+
+    With the simulator's (and a DVS pixel's) refractory semantics an interval is R + C/g (g: the log slope),
+    so the histogram has no interval below R + C/g_max and rises from there; a few noise events and timing
+    jitter put some intervals below. In the short end of the histogram (up to the IEI_WINDOW quantile, at
+    least MIN_WINDOW intervals) the onset is the first point where the density jumps over the floor of those
+    outliers (see onset). It is R plus the fastest edges' C/g: tight when an edge is fast enough to hit the
+    refractory limit. Where the density never jumps (intervals from 0 up, no refractory edge) the
+    IEI_QUANTILE quantile is reported as an upper bound.
+    Standard error: bootstrap over pixels."""
     iei, pix = iei_by_pixel(rec, exclude)
     if len(iei) < MIN_IEI:
         return Value(None, None, f"{len(iei)} inter-event intervals (need {MIN_IEI})")
-    r = float(np.quantile(iei, IEI_QUANTILE))
-    if r <= 2:
-        return Value(None, None, f"the {100 * IEI_QUANTILE:g} % quantile of the intervals is {r:g} us, at the "
-                                 "timestamp resolution: no refractory period resolved")
-    # bootstrap over pixels
+    k = max(MIN_WINDOW, int(IEI_WINDOW * len(iei)))
+    U = float(np.partition(iei, min(k, len(iei) - 1))[min(k, len(iei) - 1)]) + 1.0
+
+    def est(x):
+        return onset(x[x < U])
+
+    r = est(iei)
     order = np.argsort(pix, kind="stable")
     pix_s, iei_s = pix[order], iei[order]
-    upix, start, cnt = np.unique(pix_s, return_index=True, return_counts=True)
+    upix, cnt = np.unique(pix_s, return_counts=True)
     bs = []
-    for _ in range(boot):
+    for _ in range(min(boot, 50)):   # 50 resamples give the standard error to about 10 %
         w = np.bincount(rng.integers(0, len(upix), len(upix)), minlength=len(upix))
         sel = np.repeat(iei_s, np.repeat(w, cnt))
-        bs.append(np.quantile(sel, IEI_QUANTILE))
-    se = float(np.std(bs, ddof=1)) if len(bs) > 1 else None
-    return Value(r, se, f"{100 * IEI_QUANTILE:g} % quantile of {len(iei)} intervals "
-                 f"(minimum {int(iei.min())} us); an upper bound: R + C/g of the fastest edges")
+        bs.append(est(sel))
+    bs = np.asarray(bs, float)
+    se = float(np.nanstd(bs, ddof=1)) if np.isfinite(bs).sum() > 2 else None
+    below = int((iei < r).sum()) if np.isfinite(r) else 0
+    if np.isfinite(r) and r > 2:
+        return Value(r, se, f"onset of the interval histogram ({below} of {len(iei)} intervals below it, "
+                            f"found in the shortest {int((iei < U).sum())}); R plus the fastest edges' C/g")
+    q = float(np.quantile(iei, IEI_QUANTILE))
+    if q <= 2:
+        return Value(None, None, f"the {100 * IEI_QUANTILE:g} % quantile of the intervals is {q:g} us, at the "
+                                 "timestamp resolution: no refractory period resolved")
+    return Value(q, None, f"no onset in the interval histogram: its {100 * IEI_QUANTILE:g} % quantile, an upper "
+                          "bound (R + C/g of the fastest edges)")

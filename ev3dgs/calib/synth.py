@@ -47,8 +47,11 @@ class Truth:
                                      if self.shot_hz > 0 else None))
 
 
-def scene(t_s: np.ndarray, width: int, height: int, seed: int, speed_px_s: float = 40.0) -> np.ndarray:
-    """(T, H, W) float32 linear intensity at times t_s."""
+def scene(t_s: np.ndarray, width: int, height: int, seed: int, speed_px_s: float = 40.0, shake_px: float = 0.0,
+          shake_hz: float = 7.0) -> np.ndarray:
+    """(T, H, W) float32 linear intensity at times t_s. shake_px: the texture also shakes by this amplitude
+    (pixels) along x at shake_hz and 1.7 shake_hz (a hand-held camera's shake: reversals inside frame
+    intervals, which the frames do not resolve)."""
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:height, 0:width].astype(np.float64)
     out = np.empty((len(t_s), height, width), np.float32)
@@ -59,7 +62,8 @@ def scene(t_s: np.ndarray, width: int, height: int, seed: int, speed_px_s: float
     fy0, fy1 = height - 8, height
     fx0, fx1 = STATIC_COLS, STATIC_COLS + 12
     for i, t in enumerate(t_s):
-        u = x - speed_px_s * t
+        u = x - speed_px_s * t - shake_px * (np.sin(2 * np.pi * shake_hz * t)
+                                             + 0.5 * np.sin(2 * np.pi * 1.7 * shake_hz * t + 1.0))
         f = np.zeros_like(x)
         for lam, ang, ph, a in comps:
             f += a * np.sin(2 * np.pi * (u * np.cos(ang) + y * np.sin(ang)) / lam + ph)
@@ -74,24 +78,27 @@ def scene(t_s: np.ndarray, width: int, height: int, seed: int, speed_px_s: float
 def make_recording(path, truth: Truth = Truth(), seed: int = 0, seconds: float = 2.0, fps: float = 25.0,
                    exposure_us: int = 5000, width: int = 64, height: int = 48, rate_hz: float = 1000.0,
                    read_noise_dn: float = 1.0, with_frames: bool = True, n_frames: int | None = None,
-                   saturate: bool = False, warmup_s: float = 2.0) -> dict:
+                   saturate: bool = False, warmup_s: float = 2.0, shake_px: float = 0.0,
+                   shake_hz: float = 7.0, hot_hz: tuple[float, ...] | None = None) -> dict:
     """Write an AEDAT 4.0 recording of the synthetic scene; returns what went in. The simulator runs
     `warmup_s` before the recording starts (its events are dropped), so that every pixel's state (reference,
     leak phase) is in its steady state, as in a sensor that has been on for a while: started at t = 0, the
-    simulator's random reference phases give extra leak events in the first seconds."""
+    simulator's random reference phases give extra leak events in the first seconds. shake_px: see scene;
+    hot_hz: one rate per hot pixel (default truth.hot_hz for each)."""
     from ..io.aedat4.writer import write_aedat4
     from ..sim.dvs import simulate_events
 
     n0 = int(round(warmup_s * rate_hz))
     n = int(round(seconds * rate_hz)) + 1
     t_us = np.round(np.arange(-n0, n) * 1e6 / rate_hz).astype(np.int64)
-    frames = scene(t_us * 1e-6, width, height, seed)
+    frames = scene(t_us * 1e-6, width, height, seed, shake_px=shake_px, shake_hz=shake_hz)
     ev = simulate_events(frames, t_us, truth.dvs(), seed=seed)
     ev = ev.window(0, int(t_us[-1]) + 1)
     rng = np.random.default_rng(seed + 7)
     parts = [Events(ev.t, ev.x, ev.y, ev.p)]
-    for hx, hy in truth.hot:
-        k = rng.poisson(truth.hot_hz * seconds)
+    rates = [truth.hot_hz] * len(truth.hot) if hot_hz is None else list(hot_hz)
+    for (hx, hy), hz in zip(truth.hot, rates):
+        k = rng.poisson(hz * seconds)
         parts.append(Events(np.sort(rng.integers(0, t_us[-1], k)), np.full(k, hx), np.full(k, hy),
                             rng.choice(np.array([1, -1], np.int8), k)))
     allev = Events.concatenate(parts)

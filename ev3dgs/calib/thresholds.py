@@ -45,10 +45,13 @@ dark 0, then dark levels at the default knee) that makes the thresholds fitted i
 (terciles) agree best. The two cannot be told apart from frames and counts alone: a knee above the default
 means the event pixels lose contrast at the dark end faster than the APS does.
 
-Mismatch: per-pixel thresholds from the first and the second half of the recording (time halves, so that
-their residual and frame noise are independent); the covariance over pixels of the two half estimates is the
-variance of the pixels' true thresholds (their noise does not correlate). The global ratio of sums is a
-count-weighted (harmonic) mean, C (1 - sigma^2 / C^2) to second order; it is corrected by + sigma^2 / C.
+Mismatch: from the products of the residuals e = dL - C_on N_on + C_off N_off of every two selected frame
+pairs of a pixel at least two pairs apart, against the products of their counts (see _mismatch for the
+derivation): every pixel with two such pairs counts, whatever its number of events. The count weights (pixels
+with a low threshold fire more) and the ratio of sums (a harmonic mean: C (1 - sigma^2 / C^2) to second
+order) bias both the spread and the thresholds; invert_moments removes both for the simulator's clipped
+normal draws. The pair trim and the outlier test allow for the mismatch (a second pass), since a pixel far
+from the mean threshold with many events is neither a bad pair nor an outlier.
 
 Uncertainties: bootstrap over pixels (the dark level refitted in every resample).
 """
@@ -63,8 +66,6 @@ from .aps import Recording, last_polarity
 
 TAU_SIGMAS = 4.0
 TAU_MIN = 0.02
-MIN_EVENTS_HALF = 4       # a pixel's half-recording threshold needs this many events of that polarity
-MIN_MISMATCH_PIXELS = 30
 
 
 @dataclass
@@ -184,13 +185,16 @@ class _Samples:
         half[len(dL) // 2:] = 1
         self.half = half[:, None]
         self.on, self.off = on, off
+        self.sigma = (0.0, 0.0)      # threshold mismatch (ON, OFF) the trim allows for
 
     def trim(self, c_on: float, c_off: float) -> None:
         """Drop the pairs the model cannot explain: |dL - C_on N_on + C_off N_off| can reach C_on + C_off
         (the reference residual at both ends) plus frame noise, not more. Events lost to the refractory
         period at fast edges, flicker and hot pixels land outside."""
         r = np.abs(self.dL - c_on * self.on + c_off * self.off)
-        ok = r <= c_on + c_off + TAU_SIGMAS * self.sd
+        s_on, s_off = self.sigma
+        # a pixel's own threshold is off the mean by about sigma: N events then miss dL by sigma N
+        ok = r <= c_on + c_off + TAU_SIGMAS * np.sqrt(self.sd ** 2 + (s_on * self.on) ** 2 + (s_off * self.off) ** 2)
         self.up, self.dn = self.up0 & ok, self.dn0 & ok
 
     def fit(self, iterations: int = 4) -> tuple[float, float]:
@@ -309,6 +313,31 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
             keep = used & ~outlier
             c_on, c_off = solve(tot[keep].sum(0))
             if np.isfinite([c_on, c_off]).all():
+                # second pass that allows for threshold mismatch: a pixel far from the mean threshold with many
+                # events is neither a bad pair nor an outlier pixel, and trimming it biases both the mean
+                # (towards the arithmetic one) and the spread (down)
+                mom0 = mismatch_moments(smp.dL, smp.on, smp.off, smp.up0, smp.dn0, c_on, c_off)[used]
+                sg = []
+                for j, c in ((0, c_on), (2, c_off)):
+                    b = mom0[:, j + 1].sum()
+                    sg.append(invert_moments(c, mom0[:, j].sum() / b)[1] if b > 0 else 0.0)
+                if max(sg) > 0:
+                    smp.sigma = (sg[0], sg[1])
+                    smp.fit()
+                    bands[gi] = smp.sums(smp.band, smp.nb)
+                    tot = totals[gi] = bands[gi].sum(1)
+                    c_on, c_off = solve(tot.sum(0))
+                    if np.isfinite([c_on, c_off]).all():
+                        r = np.stack([tot[:, 0] - c_on * tot[:, 1] + c_off * tot[:, 2],
+                                      tot[:, 3] - c_off * tot[:, 5] + c_on * tot[:, 4]])
+                        used = (tot[:, [1, 2, 4, 5]].sum(1) > 0) | (np.abs(tot[:, [0, 3]]).sum(1) > 0)
+                        spread = np.sqrt(scale ** 2 + np.stack([(sg[0] * tot[:, 1]) ** 2 + (sg[1] * tot[:, 2]) ** 2,
+                                                                (sg[1] * tot[:, 5]) ** 2 + (sg[0] * tot[:, 4]) ** 2]))
+                        outlier[:] = False
+                        outlier[used] = (np.abs(r / spread)[:, used] > 5).any(0)
+                        keep = used & ~outlier
+                        c_on, c_off = solve(tot[keep].sum(0))
+            if np.isfinite([c_on, c_off]).all():
                 break
         if not run_starts:
             notes.append("no run of two frame pairs going the same way in both directions: the first pair of "
@@ -332,9 +361,13 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
     boots = np.asarray(boots).reshape(-1, 3)
     fin = np.isfinite(boots).all(1)
     se = boots[fin].std(0, ddof=1) if fin.sum() > 2 else np.full(3, np.nan)
-    # mismatch from time halves
-    halves = smp.sums(np.broadcast_to(smp.half, smp.dL.shape), 2)[keep]     # (K, 2, 6)
-    s_on, s_off = _mismatch(halves, c_on, c_off, rng, boot)
+    # mismatch from products of frame pairs, and the thresholds' harmonic-mean bias with it
+    # every pixel with a selected pair (hot pixels are excluded already), outliers of the threshold fit included:
+    # that fit's outliers are the pixels whose summed residual is large, and a pixel far from the mean
+    # threshold with many events is one; dropping them would trim the spread being measured
+    mom = mismatch_moments(smp.dL, smp.on, smp.off, smp.up0, smp.dn0, c_on, c_off)[used]
+    s_on, s_off, c_on_v, c_off_v = _mismatch(mom, c_on, c_off, rng, boot)
+    c_on, c_off = c_on_v.value, c_off_v.value
     sig_vals = [v.value for v in (s_on, s_off) if v.value is not None]
     if sig_vals:
         sigma = float(np.sqrt(np.mean(np.square(sig_vals))))
@@ -343,12 +376,7 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
         se_sig = float(np.sqrt(sum(parts)) / (len(sig_vals) * sigma)) if sigma > 0 and parts else None
         sigma_v = Value(sigma, se_sig, "rms of the ON and OFF spreads (the simulator draws both with one sigma)")
     else:
-        sigma_v = Value(None, None, s_on.note or s_off.note)
-    # harmonic-mean correction of the count-weighted ratio
-    if s_on.value:
-        c_on += s_on.value ** 2 / c_on
-    if s_off.value:
-        c_off += s_off.value ** 2 / c_off
+        sigma_v = Value(None, None, s_on.note if s_on.value is None else s_off.note)
     gd = np.array([g[0] for g in grid])
     gk = np.log10([g[1] for g in grid])
     js = boots[fin, 2].astype(int) if fin.any() else np.array([gi])
@@ -370,37 +398,109 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
                         int(smp.dn[:, keep].sum()), used_ev, notes)
 
 
-def _mismatch(halves: np.ndarray, c_on: float, c_off: float, rng, boot: int) -> tuple[Value, Value]:
+def _pair_products(E: np.ndarray, N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, sum over every two of its selected frame pairs k != l at least two apart of E_k E_l and
+    N_k N_l: (sum E)^2 - sum E^2 - 2 sum E_k E_k+1 (zeros where a pair is not selected)."""
+    def cross(X):
+        s1 = X.sum(0)
+        return s1 * s1 - (X * X).sum(0) - 2 * (X[1:] * X[:-1]).sum(0)
+
+    return cross(E), cross(N)
+
+
+def mismatch_moments(dL, on, off, up, dn, c_on: float, c_off: float) -> np.ndarray:
+    """(P, 4) per pixel [A_on, B_on, A_off, B_off]: for every two selected pairs of a pixel at least two pairs
+    apart, A = sum e_k e_l with e = dL - C_on N_on + C_off N_off (up pairs; the sign flipped for down pairs)
+    and B = sum N_k N_l (N = the pair's ON, resp. OFF count)."""
+    e = dL - c_on * on + c_off * off
     out = []
-    for pol in ("on", "off"):
-        if pol == "on":   # per-pixel C_on = (dL_up + C_off Noff_up) / Non_up
-            num = halves[..., 0] + c_off * halves[..., 2]
-            den = halves[..., 1]
-        else:
-            num = halves[..., 3] + c_on * halves[..., 4]
-            den = halves[..., 5]
-        m = (den >= MIN_EVENTS_HALF).all(1)
-        if m.sum() < MIN_MISMATCH_PIXELS:
-            out.append(Value(None, None, f"{int(m.sum())} pixels have {MIN_EVENTS_HALF}+ {pol.upper()} events in "
-                                         f"both halves of the recording (need {MIN_MISMATCH_PIXELS})"))
-            continue
-        a = num[m, 0] / den[m, 0]
-        b = num[m, 1] / den[m, 1]
-        lo, hi = np.percentile(np.concatenate([a, b]), [1, 99])
-        a, b = np.clip(a, lo, hi), np.clip(b, lo, hi)
+    for m, sgn, n in ((up, 1.0, on), (dn, -1.0, off)):
+        a, b = _pair_products(np.where(m, sgn * e, 0.0), np.where(m, n, 0).astype(float))
+        out += [a, b]
+    return np.stack(out, 1)
 
-        def cov(i):
-            return float(np.mean((a[i] - a[i].mean()) * (b[i] - b[i].mean())))
 
-        n = len(a)
-        v = cov(np.arange(n))
-        bs = np.array([cov(rng.integers(0, n, n)) for _ in range(boot)])
-        se_var = float(bs.std(ddof=1)) if boot > 2 else float('nan')
-        if v <= 0:
-            out.append(Value(0.0, float(np.sqrt(max(se_var, 0.0))),
-                             f"not resolved: the spread is below what {n} pixels resolve"))
+def _clipped_normal_nodes(c: float, sigma: float, floor: float, n: int = 2001):
+    """Nodes and weights of N(c, sigma) clipped below at `floor`: the clipped mass as a point at the floor,
+    the rest by Simpson's rule on [floor, c + 8 sigma] (the simulator's draw, effects.mismatch)."""
+    from scipy.stats import norm
+
+    if sigma <= 1e-9 * abs(c):
+        return np.array([max(c, floor)]), np.array([1.0])
+    lo = max(floor, c - 8 * sigma)
+    x = np.linspace(lo, c + 8 * sigma, n)
+    wx = np.full(n, 2.0)
+    wx[1::2] = 4.0
+    wx[0] = wx[-1] = 1.0
+    wx *= (x[1] - x[0]) / 3 * norm.pdf(x, c, sigma)
+    return np.concatenate([[floor], x]), np.concatenate([[norm.cdf(floor, c, sigma)], wx])
+
+
+def model_moments(c: float, sigma: float, floor: float = 0.01) -> tuple[float, float]:
+    """What the fit reads for per-pixel thresholds C_i ~ N(c, sigma) clipped at `floor` (the simulator's
+    ThresholdMismatch): the ratio of sums (a harmonic mean, H = 1 / E[1/C_i]) and the pair-product statistic,
+    whose pixel weights are their squared counts, proportional to 1/C_i^2: V = E[(C_i - H)^2 / C_i^2] /
+    E[1 / C_i^2]."""
+    ci, w = _clipped_normal_nodes(c, sigma, floor)
+    w = w / w.sum()
+    h = 1.0 / float(w @ (1.0 / ci))
+    v = float(w @ ((ci - h) ** 2 / ci ** 2)) / float(w @ (1.0 / ci ** 2))
+    return h, v
+
+
+def invert_moments(h_obs: float, v_obs: float, floor: float = 0.01) -> tuple[float, float]:
+    """(nominal threshold c, sigma) whose model_moments are (h_obs, v_obs): the bias correction of both the
+    count-weighted threshold (a harmonic mean: low) and the count-weighted mismatch (high: pixels with a low
+    threshold fire more and weigh more). sigma = 0 when v_obs <= 0."""
+    from scipy.optimize import least_squares
+
+    if not (np.isfinite(h_obs) and np.isfinite(v_obs)) or v_obs <= 0 or h_obs <= floor:
+        return h_obs, 0.0
+
+    def res(p):
+        h, v = model_moments(p[0], p[1], floor)
+        return [(h - h_obs) / h_obs, (v - v_obs) / v_obs]
+
+    x0 = [h_obs, float(np.sqrt(v_obs))]
+    r = least_squares(res, x0, bounds=([floor * 1.01, 0.0], [np.inf, np.inf]), xtol=1e-12, ftol=1e-12,
+                      gtol=1e-12, x_scale=[h_obs, max(x0[1], 1e-6)])
+    return float(r.x[0]), float(r.x[1])
+
+
+def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int) -> tuple[Value, Value, Value, Value]:
+    """ON and OFF mismatch from the pair products (see mismatch_moments), with the bias corrections of
+    invert_moments, and the thresholds corrected with them; bootstrap over pixels.
+
+    Derivation. For one pixel with threshold C_i, an up pair's e_k = (C_i - C) N_k + r_k, where the residual
+    r_k = d_k - d_k+1 (the pixel's distance from its reference at the two exposure midpoints) has zero mean and
+    depends only on the pair's two ends; two pairs at least two apart share no end, so E[r_k r_l] = 0 and
+    E[e_k e_l] = (C_i - C)^2 N_k N_l. Frame noise enters e through the two frames of a pair only, so it drops
+    out too. Summed over every such pair of pairs of every pixel, sum A / sum B estimates a count-weighted
+    (C_i - C)^2: every event and every frame pair of a pixel with two or more non-adjacent selected pairs
+    counts, whatever its number of events. The weights (N_k N_l, proportional to 1 / C_i^2) and the harmonic
+    mean C of the ratio of sums bias it; invert_moments removes both for the simulator's clipped normal
+    draws."""
+    def est(m):
+        out = []
+        for j, c in ((0, c_on), (2, c_off)):
+            A, B = m[:, j].sum(), m[:, j + 1].sum()
+            v = A / B if B > 0 else np.nan
+            out.append(invert_moments(c, v))
+        return out
+
+    full = est(mom)
+    n = len(mom)
+    bs = np.array([[x for cs in est(mom[rng.integers(0, n, n)]) for x in cs] for _ in range(boot)]).reshape(-1, 4)
+    se = bs.std(0, ddof=1) if len(bs) > 2 else np.full(4, np.nan)
+    used = [int(((mom[:, j + 1] > 0)).sum()) for j in (0, 2)]
+    vals = []
+    for i, (pol, (c, sig)) in enumerate(zip(("ON", "OFF"), full)):
+        s_se = float(se[2 * i + 1]) if np.isfinite(se[2 * i + 1]) else None
+        if not np.isfinite(sig) or used[i] == 0:
+            vals.append(Value(None, None, f"no pixel has two {pol} frame pairs at least two pairs apart"))
+        elif sig <= 0 or (s_se is not None and s_se > sig):
+            vals.append(Value(None, s_se, f"{sig:.3g} +- {s_se:.2g} from {used[i]} pixels: the standard error "
+                                          "exceeds the value"))
         else:
-            sig = float(np.sqrt(v))
-            sigs = np.sqrt(np.clip(bs, 0, None))
-            out.append(Value(sig, float(sigs.std(ddof=1)) if boot > 2 else None, f"{n} pixels, split-half covariance"))
-    return out[0], out[1]
+            vals.append(Value(float(sig), s_se, f"{used[i]} pixels, products of frame pairs two or more apart"))
+    return (vals[0], vals[1], Value(full[0][0], float(se[0])), Value(full[1][0], float(se[2])))

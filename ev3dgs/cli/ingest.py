@@ -98,17 +98,24 @@ def kept_events_line(stats, opts) -> str:
 def _davis(args) -> int:
     import os
 
+    from ..errors import InputError
     from ..io.davis import DavisOptions, ingest_davis
 
+    if args.sensor is not None and (args.pos_threshold is not None or args.neg_threshold is not None
+                                    or args.color_filter is not None):
+        raise InputError("--sensor gives the thresholds and colour filter: drop --pos-threshold, "
+                         "--neg-threshold and --color-filter, or drop --sensor")
     _input_file(args.recording)
     # a rough lower bound: the events kept (a fraction of the recording with --events margin) and the frames
     _output_file(args.out, os.path.getsize(args.recording) // (4 if args.events == "all" else 20), args.force)
     opts = DavisOptions(every=args.every, max_views=args.max_views, min_exposure_us=args.min_exposure_us,
                         events=args.events, event_margin_ms=args.event_margin_ms, subposes=args.subposes,
                         poses=not args.no_poses, calibration=args.calibration, frames_stream=args.frames_stream,
-                        events_stream=args.events_stream, pos_threshold=args.pos_threshold,
-                        neg_threshold=args.neg_threshold, color_filter=args.color_filter, strict=args.strict,
-                        sensor_size=args.sensor_size, min_registered=args.min_registered,
+                        events_stream=args.events_stream,
+                        pos_threshold=0.2 if args.pos_threshold is None else args.pos_threshold,
+                        neg_threshold=0.2 if args.neg_threshold is None else args.neg_threshold,
+                        color_filter=args.color_filter or "none", strict=args.strict,
+                        sensor_size=args.sensor_size, sensor=args.sensor, min_registered=args.min_registered,
                         check_motion=not args.no_motion_check)
     stats = ingest_davis(args.recording, args.out, opts, quiet=args.quiet)
     for w in dict.fromkeys(stats.warnings):
@@ -184,12 +191,16 @@ def build_parser():
                         "(default: from the header; without one, inferred from the addresses with a warning)")
     d.add_argument("--frames-stream", help="AEDAT4 stream name of the APS frames (default: the first frame stream)")
     d.add_argument("--events-stream", help="AEDAT4 stream name of the events (default: the first event stream)")
-    d.add_argument("--pos-threshold", type=finite_float, default=0.2,
-                   help="ON contrast threshold in log intensity; not stored in recordings (default %(default)s)")
-    d.add_argument("--neg-threshold", type=finite_float, default=0.2,
-                   help="OFF contrast threshold in log intensity (default %(default)s)")
-    d.add_argument("--color-filter", default="none",
-                   help="Bayer pattern of a colour DAVIS346's DVS, e.g. RGGB (default %(default)s)")
+    d.add_argument("--pos-threshold", type=finite_float,
+                   help="ON contrast threshold in log intensity; not stored in recordings (default 0.2)")
+    d.add_argument("--neg-threshold", type=finite_float,
+                   help="OFF contrast threshold in log intensity (default 0.2)")
+    d.add_argument("--color-filter",
+                   help="Bayer pattern of a colour DAVIS346's DVS, e.g. RGGB (default none)")
+    d.add_argument("--sensor", help="sensor TOML from `ev3dgs-sim calibrate` (or the NAME.sensor.toml "
+                                    "`ev3dgs-sim record` writes): thresholds, mismatch, refractory period, leak "
+                                    "and shot noise go into the scene file for the trainer's event noise model "
+                                    "(default: none, thresholds from the options above and no noise model)")
     add_output_options(d)
     d.add_argument("--strict", action="store_true",
                    help="fail (exit 2) on the first corrupt packet or value the recording contradicts (default: off: "

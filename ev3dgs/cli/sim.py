@@ -188,7 +188,7 @@ def _record(args) -> int:
         tmp = tempfile.TemporaryDirectory(prefix="ev3dgs-record-")
         scene = str(Path(tmp.name) / f"{spec.name}.toml")
         Path(scene).write_text(scene_toml(spec), encoding="utf-8")
-    # record checks its three outputs (the .aedat4, its .trajectory.npz and .calibration.toml) before rendering
+    # record checks its outputs (the .aedat4, its .trajectory.npz, .calibration.toml, .sensor.toml) before rendering
     try:
         info = record(scene, args.out, seconds=args.seconds, fps=args.fps, exposure_ms=args.exposure_ms,
                       render_rate_hz=args.render_rate, width=w, height=h, samples=args.samples, seed=args.seed,
@@ -200,7 +200,7 @@ def _record(args) -> int:
     if not args.quiet:
         print(f"{info['frames']} APS frames, {info['events']} events, {info['imu']} IMU samples over "
               f"{args.seconds} s -> {args.out} (+ ground truth {Path(info['trajectory']).name} and "
-              f"{Path(args.out).stem}.calibration.toml)")
+              f"{Path(args.out).stem}.calibration.toml, {Path(args.out).stem}.sensor.toml)")
     return 0
 
 
@@ -281,8 +281,10 @@ def build_parser():
     r = sub.add_parser("record", help="a DAVIS346-like AEDAT 4.0 recording of a scene along a hand-held path "
                                       "(needs the Blender extra: pip install 'ev3dgs[blender]')")
     r.add_argument("--scene", required=True, help="built-in scene name or a scene .toml")
-    r.add_argument("--out", required=True, help="output .aedat4; the ground truth goes beside it as "
-                                                "NAME.trajectory.npz and NAME.calibration.toml (no default)")
+    r.add_argument("--out", required=True,
+                   help="output .aedat4; the ground truth goes beside it as NAME.trajectory.npz, "
+                        "NAME.calibration.toml and NAME.sensor.toml (the simulated sensor, for "
+                        "`ev3dgs-ingest davis --sensor`) (no default)")
     r.add_argument("--config", help="sensor TOML ([dvs] and effect tables, [isp], [sensor_noise]), e.g. from "
                                     "`ev3dgs-sim calibrate`: each table it has replaces the scene's [sensor] one "
                                     "(default: none, the scene's sensor)")

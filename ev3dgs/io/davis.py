@@ -62,6 +62,7 @@ class DavisOptions:
     aps_linear: bool = True           # DAVIS APS frames are linear in light: sRGB-encode them for the scene
     strict: bool = False              # reader: raise on a corrupt packet / contradicted value instead of dropping it
     sensor_size: tuple[int, int] | None = None   # AEDAT 2.0/3.1 without a camera name in the header: (W, H)
+    sensor: str | None = None         # sensor TOML (ev3dgs.calib.sensor): thresholds, mismatch, noise, refractory
 
     def __post_init__(self):
         if self.every < 1:
@@ -353,6 +354,15 @@ def ingest_davis(path: str | Path, out: str | Path, opts: DavisOptions = DavisOp
 def _ingest_davis(path, out, opts: DavisOptions, quiet: bool) -> IngestStats:
     out = Path(out)
     stats = IngestStats(out)
+    sensor = None
+    if opts.sensor is not None:   # before reading: a bad sensor file fails at once
+        from dataclasses import replace
+
+        from ..calib.sensor import load_sensor_toml
+
+        sensor = load_sensor_toml(opts.sensor)
+        opts = replace(opts, pos_threshold=sensor.pos_threshold, neg_threshold=sensor.neg_threshold,
+                       color_filter=sensor.color_filter)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the reader keeps its own list (opening included); we report it once
         with open_recording(path, strict=opts.strict, sensor_size=opts.sensor_size) as reader:
@@ -415,9 +425,10 @@ def _ingest_davis(path, out, opts: DavisOptions, quiet: bool) -> IngestStats:
         name=Path(path).stem, source="davis",
         camera=schema.Camera(width=W, height=H, K=np.asarray(K, float), distortion=np.zeros(5)),
         events=ev,
-        sensor=schema.EventSensor(pos_threshold=opts.pos_threshold, neg_threshold=opts.neg_threshold,
-                                  color_filter=opts.color_filter, refractory_us=0.0, log_knee=DEFAULT_LOG_KNEE,
-                                  count_convention="random_phase"),  # a running sensor's reference
+        sensor=sensor or schema.EventSensor(pos_threshold=opts.pos_threshold, neg_threshold=opts.neg_threshold,
+                                            color_filter=opts.color_filter, refractory_us=0.0,
+                                            log_knee=DEFAULT_LOG_KNEE,
+                                            count_convention="random_phase"),  # a running sensor's reference
         train=schema.Train(images=np.stack(images), exposure=exposure, transfer="srgb", **train_kw),
         points=points,
         imu=schema.Imu(t=imu.t, accel=imu.accel, gyro=imu.gyro, temperature=imu.temperature) if len(imu) else None,

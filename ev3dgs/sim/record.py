@@ -109,14 +109,27 @@ def _gray(srgb: np.ndarray) -> np.ndarray:
 
 
 def outputs(out) -> dict[str, Path]:
-    """The files `record` writes for OUT.aedat4: the recording, its ground-truth trajectory and calibration."""
+    """The files `record` writes for OUT.aedat4: the recording, its ground-truth trajectory, camera
+    calibration and sensor (the simulated DVS, as the TOML `ev3dgs-ingest davis --sensor` reads)."""
     out = Path(out)
     return {"--out": out, "ground truth": out.with_suffix(".trajectory.npz"),
-            "calibration": out.parent / f"{out.stem}.calibration.toml"}
+            "calibration": out.parent / f"{out.stem}.calibration.toml",
+            "sensor": out.parent / f"{out.stem}.sensor.toml"}
+
+
+def sensor_toml(sensor) -> str:
+    """The simulated sensor (a SimConfig: [dvs] with its effect tables, [isp], [sensor_noise]) as a TOML that
+    load_sim_config, `--config` and `ev3dgs-ingest davis --sensor` read back to the same settings. AEDAT 4
+    has no field for it, so it goes beside the recording: the ground truth a calibration is held against."""
+    from ..cli.sim import _toml
+    from ..config import to_dict
+
+    return ("# the sensor ev3dgs-sim record simulated (ground truth; AEDAT 4 stores no sensor model)\n"
+            + _toml(to_dict(sensor)) + "\n")
 
 
 def check_outputs(out, force: bool = True) -> None:
-    """Fail now (OutputError) if OUT.aedat4 cannot be written, or (unless force) if any of the three files
+    """Fail now (OutputError) if OUT.aedat4 cannot be written, or (unless force) if any of the four files
     exists: a new recording never silently replaces an earlier one or its ground truth."""
     from ..outputs import check_output_file
 
@@ -128,9 +141,10 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
            render_rate_hz: float = 250, width: int = 346, height: int = 260, samples: int = 8, seed: int = 0,
            workers: int = 1, quiet: bool = True, arc_deg: float = 75.0, compression: str = "lz4",
            keep_cache: bool = False, denoise_prefilter: str | None = None, force: bool = True) -> dict:
-    """Render, simulate and write OUT.aedat4 + OUT.trajectory.npz + OUT.calibration.toml; returns a summary
+    """Render, simulate and write OUT.aedat4 + OUT.trajectory.npz + OUT.calibration.toml + OUT.sensor.toml;
+    returns a summary
     (counts, seconds). denoise_prefilter: OIDN's guide prefilter ("accurate", "fast", "none"; None: the
-    scene's). force=False: refuse (OutputError) if any of the three files exists, before any rendering."""
+    scene's). force=False: refuse (OutputError) if any of the four files exists, before any rendering."""
     out = Path(out)
     if out.suffix != ".aedat4":
         raise InputError(f"the recording must end in .aedat4, got {out}")
@@ -236,6 +250,10 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
     outputs(out)["calibration"].write_text(
         f"width = {W}\nheight = {H}\nfx = {K_true[0, 0]!r}\nfy = {K_true[1, 1]!r}\n"
         f"cx = {K_true[0, 2]!r}\ncy = {K_true[1, 2]!r}\n")
+    sensor_path = outputs(out)["sensor"]
+    tmp = sensor_path.with_name(f".{sensor_path.name}.tmp-{os.getpid()}")
+    tmp.write_text(sensor_toml(spec.sensor), encoding="utf-8")
+    os.replace(tmp, sensor_path)
     return {"path": str(out), "trajectory": str(traj_path), "scene": spec.name, "width": W, "height": H,
             "frames": n_frames, "events": int(n_events), "imu": len(imu), "rendered": len(poses),
             "rendered_now": rendered, "duration_us": duration_us, "start_us": EPOCH_US,

@@ -8,6 +8,14 @@ relative error of each seed and the bootstrap standard error calibrate reports f
     python tools/studies/study_calibrate.py synthetic [--seeds 6] --json tools/results/study_calibrate.json \\
         --plot tools/results/study_calibrate.png
 
+record: recordings made with `ev3dgs-sim record` (Blender, 250 Hz rendering) of the lego scene with 1.6 deg
+shake at 173x130, 25 fps APS frames with 10 ms exposure, for the sensors A, B, C and A without mismatch
+(SENSORS); the rendered frames are cached per seed and duration and shared by the four sensors (the
+rendering does not depend on the sensor), so each extra sensor costs only its event simulation.
+
+    python tools/studies/study_calibrate.py record --seconds 2 --seeds 1 --sensors A C \\
+        --json tools/results/study_calibrate_record.json [--work DIR]
+
 real: calibrate each real recording, then compare (a) the calibrated config, (b) the simulator's default,
 (c) v2e's clean and (d) noisy presets (ev3dgs.sim.presets) on it; the same APS dark level for all four.
 
@@ -45,6 +53,14 @@ PARAMS = [  # (name, truth attribute, getter on a Calibration)
     ("refractory_us", "refractory_us", lambda c: c.noise.refractory_us),
     ("aps_dark_dn", "dark_dn", lambda c: c.thresholds.dark),
 ]
+# the issue's sensors: (ON, OFF threshold, mismatch as a share of the mean threshold, refractory us, leak Hz,
+# shot noise Hz); the simulator draws both polarities' thresholds with one absolute sigma
+SENSORS = {
+    "A": (0.15, 0.25, 0.15, 200.0, 0.1, 2.0),
+    "B": (0.3, 0.3, 0.25, 500.0, 0.5, 0.5),
+    "C": (0.4, 0.2, 0.40, 1000.0, 0.05, 5.0),
+    "A0": (0.15, 0.25, 0.0, 200.0, 0.1, 2.0),
+}
 TOL = {"pos_threshold": 0.10, "neg_threshold": 0.10, "mismatch_sigma": 0.25, "leak_hz": 0.25,
        "shot_noise_hz": 0.25, "white_fraction": None, "refractory_us": 0.20, "aps_dark_dn": None}
 
@@ -85,6 +101,70 @@ def synthetic(args) -> dict:
     return {"truth": {k: v for k, v in vars(truth).items() if k != "hot"}, "seeds": rows, "summary": summary,
             "settings": {"seconds": args.seconds, "bootstrap": args.bootstrap, "fps": 25, "exposure_us": 5000,
                          "size": "64x48"}}
+
+
+def sensor_dvs(name: str):
+    from ev3dgs.sim.config import DVSConfig, Leak, Refractory, ShotNoise, ThresholdMismatch
+
+    on, off, share, refr, leak, shot = SENSORS[name]
+    return DVSConfig(pos_threshold=on, neg_threshold=off,
+                     threshold_mismatch=ThresholdMismatch(sigma=share * (on + off) / 2) if share else None,
+                     refractory=Refractory(period_us=refr), leak=Leak(rate_hz=leak), shot_noise=ShotNoise(rate_hz=shot))
+
+
+def record_mode(args) -> dict:
+    """Record (Blender) and calibrate; per sensor and seed the estimates against the truth."""
+    import dataclasses
+    import shutil
+
+    from ev3dgs.cli.sim import scene_toml
+    from ev3dgs.sim.record import record
+    from ev3dgs.sim.scenes import ShakeSpec, load_scene
+
+    work = Path(args.work or tempfile.mkdtemp(prefix="study-calibrate-"))
+    work.mkdir(parents=True, exist_ok=True)
+    rows = []
+    base = load_scene(args.scene)
+    for seed in range(1, args.seeds + 1):
+        for name in args.sensors:
+            t0 = time.perf_counter()
+            dvs = sensor_dvs(name)
+            spec = dataclasses.replace(base, shake=dataclasses.replace(base.shake, rotation_deg=args.shake_deg),
+                                       sensor=dataclasses.replace(base.sensor, dvs=dvs))
+            scene = work / f"scene_{name}.toml"
+            scene.write_text(scene_toml(spec), encoding="utf-8")
+            # one output name per (seed, duration): the render cache beside it is shared by every sensor
+            out = work / f"rec_s{seed}_{args.seconds:g}s.aedat4"
+            final = work / f"rec_{name}_s{seed}_{args.seconds:g}s.aedat4"
+            if not final.exists():
+                info = record(str(scene), out, seconds=args.seconds, fps=25, exposure_ms=10, render_rate_hz=250,
+                              width=173, height=130, samples=args.samples, seed=seed, keep_cache=True,
+                              quiet=False)
+                shutil.move(out, final)
+                print(f"{name} seed {seed}: recorded {info['events']} events, {info['frames']} frames "
+                      f"({info['rendered_now']} rendered now) in {time.perf_counter() - t0:.0f} s", flush=True)
+            if args.record_only:
+                continue
+            t1 = time.perf_counter()
+            cal = calibrate_recording(final, boot=args.bootstrap, seed=seed)
+            on, off, share, refr, leak, shot = SENSORS[name]
+            truth = {"pos_threshold": on, "neg_threshold": off, "mismatch_sigma": share * (on + off) / 2,
+                     "refractory_us": refr, "leak_hz": leak, "shot_noise_hz": shot}
+            row = {"sensor": name, "seed": seed, "seconds": args.seconds, "events": len(cal.rec.events),
+                   "calibrate_s": time.perf_counter() - t1, "hot_pixels": len(cal.noise.hot)}
+            for pname, _, get in PARAMS:
+                if pname in truth:
+                    v = get(cal)
+                    row[pname] = {"value": v.value, "se": v.se, "truth": truth[pname], "note": v.note}
+            rows.append(row)
+            print(f"{name} seed {seed}: " + ", ".join(
+                f"{k} {row[k]['value']:.4g} (truth {row[k]['truth']:g})" if row[k]["value"] is not None
+                else f"{k} - ({row[k]['note'][:60]})" for k in truth) + f", hot {row['hot_pixels']}", flush=True)
+    return {"rows": rows, "settings": {"scene": args.scene, "shake_deg": args.shake_deg, "seconds": args.seconds,
+                                       "size": "173x130", "fps": 25, "exposure_ms": 10, "render_rate_hz": 250,
+                                       "samples": args.samples, "bootstrap": args.bootstrap},
+            "sensors": {k: dict(zip(("pos", "neg", "mismatch_share", "refractory_us", "leak_hz", "shot_hz"), v))
+                        for k, v in SENSORS.items()}}
 
 
 def plot_synthetic(res: dict, path: str) -> None:
@@ -171,6 +251,17 @@ def main() -> int:
     s.add_argument("--bootstrap", type=int, default=100)
     s.add_argument("--json", required=True)
     s.add_argument("--plot")
+    c = sub.add_parser("record")
+    c.add_argument("--seeds", type=int, default=2)
+    c.add_argument("--seconds", type=float, default=2.0)
+    c.add_argument("--sensors", nargs="+", default=list(SENSORS), choices=list(SENSORS))
+    c.add_argument("--scene", default="lego")
+    c.add_argument("--shake-deg", type=float, default=1.6)
+    c.add_argument("--samples", type=int, default=8)
+    c.add_argument("--bootstrap", type=int, default=100)
+    c.add_argument("--record-only", action="store_true", help="record the recordings, calibrate nothing")
+    c.add_argument("--work", help="folder for the recordings (kept; default: a new temporary folder)")
+    c.add_argument("--json", required=True)
     r = sub.add_parser("real")
     r.add_argument("recordings", nargs="+")
     r.add_argument("--bootstrap", type=int, default=100)
@@ -184,6 +275,10 @@ def main() -> int:
         save_json(a.json, res)
         if a.plot:
             plot_synthetic(res, a.plot)
+    elif a.mode == "record":
+        res = record_mode(a)
+        res["seconds_total"] = time.perf_counter() - t0
+        save_json(a.json, res)
     else:
         res = real(a)
         res["seconds_total"] = time.perf_counter() - t0
