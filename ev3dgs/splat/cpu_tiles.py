@@ -2,8 +2,11 @@
 pixel box and per-row ellipse span, tile geometry, the depth sort and the (camera, tile) lists."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import overload
 
 TILE = 16
 ALPHA_MAX = 0.99
@@ -288,3 +291,124 @@ def _pack(means2d, conics, colors, opacities, sigma_max, offsets, ids, gboxes, w
             boxes[k, 2] = by0
             boxes[k, 3] = by1
     return params, boxes
+
+
+# ---- a vectorisable exp(-s) for the tile kernels (no SVML in numba's LLVM: np.exp in a loop stays a scalar call)
+#
+# exp(-s) = 2^-k exp(-r), k = floor(s / ln 2 + 1/2), r = s - k ln 2 in [-ln2/2, ln2/2] (Cody-Waite: ln 2 split into
+# LN2_HI, whose trailing zero bits make k * LN2_HI exact for k < 2^9, and LN2_LO; s - k * LN2_HI is exact by
+# Sterbenz's lemma for k >= 1, and |r| <= 0.3466 up to rounding), exp(-r) by its Taylor polynomial (degree 7 in
+# float32, 13 in float64) in Horner form, 2^-k as the integer 2^15 >> k times 2^-15 (exact; k <= 14 for
+# s <= SIGMA_POLY_MAX; int32 and float conversions that AVX2 vectorises, where a select chain on k's bits measured
+# 2x slower and float -> int64 conversions do not vectorise at all).
+# Error, relative to exp(-s) of the given (rounded) s, u the unit roundoff (2^-24 float32, 2^-53 float64):
+#   truncation: |r|^(n+1) / (n+1)! * e^|r| / e^-|r| <= 0.3466^8 / 8! * 2 = 1.1e-8 = 0.18 u (float32, n = 7),
+#               0.3466^14 / 14! * 2 = 8.5e-18 = 0.08 u (float64, n = 13);
+#   r: the product k * LN2_LO and the subtraction round, |dr| <= (|r| + 15 * LN2_LO) u + 15 |LN2_HI + LN2_LO - ln2|
+#      <= 0.35 u (+1e-14 u), giving a relative change exp(|dr|) - 1 <= 0.36 u;
+#   Horner: n steps of one multiply and one add, each relative u, on terms whose sum is dominated by the constant
+#      1 (|x| <= 0.3466, so the partial sums are >= 0.7): <= sum_i 2 u |x|^i * (1 + |x|) / 0.7 < 2 u * 2.2 / 0.7;
+#      in practice <= 2 u (tested);
+#   2^-k multiply: exact (no underflow: exp(-s) >= 2^-15 on the domain).
+# EXP_REL_ERR is the bound the tests check (hypothesis against float64 math.exp, tests/test_splat_vector.py): 4 u.
+# Through compositing a relative alpha error eps changes a pixel by at most 2 eps max|colour or background|:
+# dC/dalpha_i * alpha_i = alpha_i T_i c_i - alpha_i / (1 - alpha_i) S_i with |S_i| <= T_i (1 - alpha_i) max|c|,
+# and sum_i alpha_i T_i <= 1 (the derivation of the tolerance in tests/test_splat_vector.py).
+SIGMA_POLY_MAX = 10.0  # beyond it (only opacities above e^10/255 ~ 86 reach it) the kernels call libm's exp
+LN2 = 0.6931471805599453
+_INV_LN2_32, _HALF_32, _ONE_32 = np.float32(1.0 / LN2), np.float32(0.5), np.float32(1.0)
+_LN2_HI_32, _LN2_LO_32 = np.float32(0.693145751953125), np.float32(LN2 - 0.693145751953125)
+_INV_LN2_64, _HALF_64, _ONE_64 = np.float64(1.0 / LN2), np.float64(0.5), np.float64(1.0)
+_LN2_HI_64, _LN2_LO_64 = np.float64(6.93147180369123816490e-01), np.float64(1.90821492927058770002e-10)
+_S15_32, _S15_64 = np.float32(2.0 ** -15), np.float64(2.0 ** -15)
+_P32 = tuple(np.float32(1.0 / math.factorial(i)) for i in range(8))
+_P64 = tuple(np.float64(1.0 / math.factorial(i)) for i in range(14))
+EXP_REL_ERR = {4: 4 * 2.0 ** -24, 8: 4 * 2.0 ** -53}  # by itemsize
+
+
+def _exp_neg(s):
+    """exp(-s) for 0 <= s <= SIGMA_POLY_MAX, branch-free (see above); numba only."""
+    raise NotImplementedError
+
+
+@overload(_exp_neg, inline="always")
+def _exp_neg_impl(s):
+    if isinstance(s, types.Float) and s.bitwidth == 32:
+        p0, p1, p2, p3, p4, p5, p6, p7 = _P32
+
+        def impl32(s):
+            k = np.floor(s * _INV_LN2_32 + _HALF_32)
+            x = (k * _LN2_HI_32 - s) + k * _LN2_LO_32  # -r
+            p = ((((((p7 * x + p6) * x + p5) * x + p4) * x + p3) * x + p2) * x + p1) * x + p0
+            return p * (np.float32(np.int32(np.int32(32768) >> np.int32(k))) * _S15_32)
+        return impl32
+    c = _P64
+
+    def impl64(s):
+        k = np.floor(s * _INV_LN2_64 + _HALF_64)
+        x = (k * _LN2_HI_64 - s) + k * _LN2_LO_64
+        p = c[13]
+        p = p * x + c[12]
+        p = p * x + c[11]
+        p = p * x + c[10]
+        p = p * x + c[9]
+        p = p * x + c[8]
+        p = p * x + c[7]
+        p = p * x + c[6]
+        p = p * x + c[5]
+        p = p * x + c[4]
+        p = p * x + c[3]
+        p = p * x + c[2]
+        p = p * x + c[1]
+        p = p * x + c[0]
+        return p * (np.float64(np.int32(np.int32(32768) >> np.int32(k))) * _S15_64)
+    return impl64
+
+
+@njit(cache=True, nogil=True)
+def exp_neg(s):
+    """Vectorisable exp(-s) of the tile kernels, callable from Python for tests (array in, array out)."""
+    out = np.empty_like(s)
+    for i in range(s.shape[0]):
+        out[i] = _exp_neg(s[i])
+    return out
+
+
+LANES = 8  # lanes per block: one AVX2 vector of float32 (two of float64); a row span takes one or two blocks
+_U8 = np.uint64(LANES)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_exp(e, xs, jf, j0, mx, dy, a, b, c, smax, lo, hi, half, zero, libm):
+    """One block of LANES lanes (tile columns j0 ... j0 + 7, j0 unsigned) of a tile row of a Gaussian:
+    e[j] = exp(-sigma) of column j0 + j where it lies in the span [lo, hi] (tile-relative, as floats) and
+    0 <= sigma <= smax, else 0 (alpha 0: skipped downstream). Branch-free over j; ``libm`` selects np.exp
+    (exact mode, scalar calls) instead of _exp_neg. The forward and the backward call this same function, so
+    they see bitwise the same e."""
+    if libm:
+        for j in range(_U8):
+            dx = xs[j0 + j] - mx
+            sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+            ok = (jf[j0 + j] >= lo) & (jf[j0 + j] <= hi) & (sigma >= zero) & (sigma <= smax)
+            e[j] = np.exp(-sigma) if ok else zero
+    else:
+        for j in range(_U8):
+            dx = xs[j0 + j] - mx
+            sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+            ok = (jf[j0 + j] >= lo) & (jf[j0 + j] <= hi) & (sigma >= zero) & (sigma <= smax)
+            sc = sigma if sigma > zero else zero
+            sc = sc if sc < smax else smax
+            v = _exp_neg(sc)
+            e[j] = v if ok else zero
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lanes(x0, y0, like):
+    """Per tile: pixel-centre x of the TILE lanes (x0 + j, beyond the image's edge too: masked by the spans),
+    the lane indices j as floats (span masks), in like's dtype."""
+    xs = np.empty(TILE, like.dtype)
+    jf = np.empty(TILE, like.dtype)
+    for j in range(TILE):
+        xs[j] = x0 + j
+        jf[j] = j
+    return xs, jf
