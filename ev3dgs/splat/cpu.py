@@ -51,107 +51,85 @@ from numba import njit, prange
 # names tests and tools reach through this module are imported here
 from .cpu_backward import _backward, _reduce
 from .cpu_tiles import ALPHA_MAX, ALPHA_MIN, SPAN_MIN_WIDTH, T_MIN, TILE  # noqa: F401
-from .cpu_tiles import (_U8, LANES, SIGMA_POLY_MAX, _bin, _box, _ellipse_box, _entry, _lanes, _pack, _pixel_boxes,  # noqa: F401
-                        _row_exp, _row_span, _span_params, _stable_argsort, _tile)
+from .cpu_tiles import _bin, _box, _ellipse_box, _entry, _pack, _pixel_boxes, _row_span, _span_params, _stable_argsort, _tile  # noqa: F401
 
-EXP_ENV = "EV3DGS_CPU_EXP"  # "libm": the exact mode (np.exp, scalar); unset or "poly": the vectorised exp
-
-
-# per-tile state of the forward, one float array per thread (one base pointer: LLVM vectorises the lane loops
-# without runtime alias checks), indexed with unsigned integers (numba adds no negative-index wraparound):
-# T, live (1 while the pixel is open), stop (one past the last entry composited, tile-local: exact in float32
-# below 2^24 entries per tile, checked), then D colour planes; lane scratch: weights. Offsets in uint64.
-_B = TILE * TILE
-_U16, _UB = np.uint64(TILE), np.uint64(_B)
-_F_T, _F_LIVE, _F_STOP, _F_COL = np.uint64(0), np.uint64(_B), np.uint64(2 * _B), np.uint64(3 * _B)
-MAX_TILE_ENTRIES = 2 ** 24
+FRAGMENT_BUDGET = 512 * 2 ** 20  # bytes of recorded fragments per call; above it the backward recomputes
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _forward(params, boxes, offsets, work, background, width, height, tiles_x, image, t_final, last, consts,
-             n_threads):
+             frag_start, frag_pix, frag_e, frag_n, n_threads):
     """All cameras at once: params and boxes per tile-list entry (cpu_tiles._pack); global tile
     c * n_tiles + t is camera c's tile t; image (C,H,W,D), t_final and last (C,H,W).
 
-    Per tile, state in structure-of-arrays form over a TILE x TILE block (rows of TILE lanes; lanes past the
-    image's edge exist but no span reaches them). Per entry and row of its box: _row_exp gives every lane's
-    exp(-sigma) (0 outside the row span or the sigma range), then one branch-free pass over the TILE lanes
-    composites with per-lane masks (alpha >= 1/255 and open; a next T < 1e-4 closes the lane instead), then
-    one pass per channel adds the weights. A lane's updates are exactly the scalar kernel's (the same
-    operations in the same order), so with the libm exp the image is bitwise the scalar kernel's (tested
-    against _cpu_legacy)."""
+    Fragments (when frag_n has one entry per tile-list entry; else not recorded): tile-list entry k's
+    composited pixels, in the order they were composited, go to slots frag_start[k] ... (frag_n[k] of them,
+    at most the entry's box area): the pixel's index in its tile (frag_pix) and exp(-sigma) (frag_e), exactly
+    as computed here, so the backward replays them without recomputing or re-testing anything."""
     D = image.shape[3]
-    # consts = (0.5, 1, ALPHA_MAX, ALPHA_MIN, T_MIN, libm) in the input dtype: with float32 inputs the maths
-    # stays float32 (numba would promote to float64 on any Python float literal)
+    # consts = (0.5, 1, ALPHA_MAX, ALPHA_MIN, T_MIN) in the input dtype: with float32 inputs the maths stays
+    # float32 (numba would promote to float64 on any Python float literal)
     half, one, amax, amin, tmin = consts[0], consts[1], consts[2], consts[3], consts[4]
-    libm_all = consts[5] != 0
-    zero = half - half
     n_tiles = tiles_x * (-(-height // TILE))
-    uW = np.uint64((3 + D) * _B)
+    record = frag_n.shape[0] == params.shape[0]
     for t in prange(n_threads):  # tiles dealt round robin to the threads (see cpu._work_order)
-        F = np.empty((3 + D) * _B + TILE, image.dtype)
-        e = np.empty(TILE, image.dtype)
-        col = np.empty(D, image.dtype)
         for i in range(t, work.shape[0], n_threads):
             gt = work[i]
-            cam, x0, y0, w, h, _, ys = _tile(gt, n_tiles, tiles_x, width, height, image)
-            xs, jf = _lanes(x0, y0, image)
+            cam, x0, y0, w, h, xs, ys = _tile(gt, n_tiles, tiles_x, width, height, image)
             P = w * h
-            F[:2 * _B] = one
-            F[2 * _B:] = zero
+            T = np.ones(P, image.dtype)
+            C = np.zeros((P, D), image.dtype)
+            stop = np.zeros(P, np.int64)
+            done = np.zeros(P, np.bool_)
+            col = np.empty(D, image.dtype)
             n_done = 0
             start, end = offsets[gt], offsets[gt + 1]
             for k in range(start, end):
-                if n_done == P:  # every pixel done: no later entry is composited
+                if n_done == P:  # every pixel done: no later entry is composited (nor replayed: kmax <= k)
                     break
                 mx, my, a, b, c, o, smax = _entry(params, k, col)
-                libm = libm_all or not (smax <= SIGMA_POLY_MAX)
-                kf = image.dtype.type(k - start + 1)
                 # only the pixels of the entry's box (radius box, ellipse bounds, tile) can have alpha >= 1/255
                 bx0, bx1, by0, by1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
                 ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
+                nf = 0
+                fs = frag_start[k] if record else 0
                 for py in range(by0, by1 + 1):
                     dy = ys[py - y0] - my
                     rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
-                    if rx0 > rx1:
-                        continue
-                    base = np.uint64(py - y0) * _U16
-                    for blk in range((rx0 - x0) // LANES, (rx1 - x0) // LANES + 1):
-                        j0 = np.uint64(blk * LANES)
-                        _row_exp(e, xs, jf, j0, mx, dy, a, b, c, smax, image.dtype.type(rx0 - x0),
-                                 image.dtype.type(rx1 - x0), half, zero, libm)
-                        b0 = base + j0
-                        nd = 0
-                        for j in range(_U8):
-                            p = b0 + j
-                            alpha = min(amax, o * e[j])
-                            Tp = F[_F_T + p]
-                            lp = F[_F_LIVE + p]
-                            sp = F[_F_STOP + p]
-                            nT = Tp * (one - alpha)
-                            go = (alpha >= amin) & (lp != zero)
-                            end_now = go & (nT < tmin)
-                            comp = go & (nT >= tmin)
-                            F[_F_LIVE + p] = zero if end_now else lp
-                            F[uW + j] = alpha * Tp if comp else zero
-                            F[_F_T + p] = nT if comp else Tp
-                            F[_F_STOP + p] = kf if comp else sp
-                            nd += 1 if end_now else 0
-                        n_done += nd
+                    for px in range(rx0, rx1 + 1):
+                        p = (py - y0) * w + (px - x0)
+                        if done[p]:
+                            continue
+                        dx = xs[px - x0] - mx
+                        sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                        if sigma < 0 or sigma > smax:  # beyond smax: alpha < 1/255, no exp needed
+                            continue
+                        e = np.exp(-sigma)
+                        alpha = min(amax, o * e)
+                        if alpha < amin:
+                            continue
+                        nT = T[p] * (one - alpha)
+                        if nT < tmin:
+                            done[p] = True
+                            n_done += 1
+                            continue
+                        wgt = alpha * T[p]
                         for d in range(D):
-                            cd = col[d]
-                            off = _F_COL + np.uint64(d) * _UB + b0
-                            for j in range(_U8):
-                                F[off + j] += cd * F[uW + j]
+                            C[p, d] += col[d] * wgt
+                        T[p] = nT
+                        stop[p] = k + 1
+                        if record:
+                            frag_pix[fs + nf] = p
+                            frag_e[fs + nf] = e
+                            nf += 1
+                if record:
+                    frag_n[k] = nf
             for p in range(P):
-                px, py = p % w, p // w
-                q = py * TILE + px
-                Tq = F[q]
+                px, py = x0 + p % w, y0 + p // w
                 for d in range(D):
-                    image[cam, y0 + py, x0 + px, d] = F[3 * _B + d * _B + q] + Tq * background[d]
-                t_final[cam, y0 + py, x0 + px] = Tq
-                st = np.int64(F[2 * _B + q])
-                last[cam, y0 + py, x0 + px] = start + st if st > 0 else 0
+                    image[cam, py, px, d] = C[p, d] + T[p] * background[d]
+                t_final[cam, py, px] = T[p]
+                last[cam, py, px] = stop[p]
 
 
 def announce_compile() -> None:
@@ -202,16 +180,25 @@ def _per_camera(n_cameras: int) -> int:
     return max(1, -(-numba.get_num_threads() // max(1, n_cameras)))
 
 
-def exp_mode() -> str:
-    """"libm" (exact: np.exp, as `reference` computes it) when EV3DGS_CPU_EXP=libm, else "poly" (the default:
-    the vectorised exp of cpu_tiles._exp_neg, relative error <= cpu_tiles.EXP_REL_ERR)."""
-    import os
-
-    return "libm" if os.environ.get(EXP_ENV, "poly").strip().lower() == "libm" else "poly"
+def _fragment_buffers(boxes, dtype, record: bool) -> tuple:
+    """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
+    pixel of every tile-list entry's box (an upper bound). Without ``record`` (no input needs a
+    gradient) or over FRAGMENT_BUDGET bytes, nothing is recorded (frag_n empty) and a backward recomputes."""
+    none = (np.zeros(1, np.int64), np.zeros(0, np.uint8), np.zeros(0, dtype), np.zeros(0, np.int32))
+    if not record or len(boxes) == 0:
+        return none
+    b = boxes.astype(np.int64)
+    areas = (b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)  # empty boxes are stored as (0, -1, 0, -1): 0
+    start = np.zeros(len(boxes) + 1, np.int64)
+    np.cumsum(areas, out=start[1:])
+    total = int(start[-1])
+    if total * (1 + np.dtype(dtype).itemsize) > FRAGMENT_BUDGET:
+        return none
+    return start, np.empty(total, np.uint8), np.empty(total, dtype), np.empty(len(boxes), np.int32)
 
 
 def _consts(dtype) -> np.ndarray:
-    return np.array([0.5, 1.0, ALPHA_MAX, ALPHA_MIN, T_MIN, 1.0 if exp_mode() == "libm" else 0.0], dtype)
+    return np.array([0.5, 1.0, ALPHA_MAX, ALPHA_MIN, T_MIN], dtype)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -242,20 +229,18 @@ class _RasterizeCPU(torch.autograd.Function):
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
         params, boxes = _parallel(_pack, m, q, col, o, smax, offsets, ids, gboxes, width, height, tiles_x)
-        consts = _consts(col.dtype)
-        if len(offsets) > 1 and int(np.diff(offsets).max()) >= MAX_TILE_ENTRIES:
-            raise ValueError(f"more than {MAX_TILE_ENTRIES} Gaussians reach one 16x16 tile")
+        frags = _fragment_buffers(boxes, col.dtype, record=any(ctx.needs_input_grad[:4]))
         _parallel(_forward, params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
-                  consts, _threads(work))
+                  _consts(col.dtype), *frags, _threads(work))
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
-        ctx.arrays = (params, boxes, bg, offsets, ids, work, t_final, last, consts)
+        ctx.arrays = (params, boxes, bg, offsets, ids, work, t_final, last, frags)
         ctx.size = (width, height, tiles_x, C, m.shape[1], col.shape[2])
         alpha = torch.from_numpy(1.0 - t_final)[..., None]
         return torch.from_numpy(image), alpha
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha):
-        params, boxes, bg, offsets, ids, work, t_final, last, consts = ctx.arrays
+        params, boxes, bg, offsets, ids, work, t_final, last, frags = ctx.arrays
         width, height, tiles_x, C, N, D = ctx.size
         dtype = t_final.dtype
         gi = (np.zeros((C, height, width, D), dtype) if grad_image is None
@@ -263,9 +248,9 @@ class _RasterizeCPU(torch.autograd.Function):
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(dtype, copy=False)[..., 0])
         per_pair = np.zeros((len(ids), 6 + D), dtype)
-        # the same exp mode as the forward (consts): the backward recomputes the forward's fragments exactly
+        # replays the fragments when the forward recorded them (frags not empty), else recomputes them
         _parallel(_backward, params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last, gi, ga,
-                  per_pair, consts, _threads(work))
+                  per_pair, _consts(dtype), *frags, _threads(work))
         g_mean, g_conic, g_ops, g_col = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None

@@ -1,155 +1,139 @@
-"""The `cpu` backend's backward kernel (see cpu.py) and the per-camera, per-Gaussian sum of its per-(tile,
-Gaussian) gradients. The backward recomputes the forward's fragments with the forward's own row function
-(cpu_tiles._row_exp: bitwise the same exp(-sigma)) and its tests (alpha >= 1/255, k < stop[p]), lane-parallel
-over the TILE pixels of a tile row, branch-free: a lane that is not a fragment carries alpha 0 and adds nothing."""
+"""The `cpu` backend's backward kernel (see cpu.py), which replays the forward's recorded fragments or
+recomputes them, and the per-camera, per-Gaussian sum of its per-(tile, Gaussian) gradients. Both ways run the
+same per-tile set-up (_tile_state) and the same per-fragment update (_fragment_grad), so they give bitwise
+the same gradients."""
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
 
-from .cpu_tiles import _U8, LANES, SIGMA_POLY_MAX, TILE, _entry, _lanes, _row_exp, _row_span, _span_params, _tile
-
-
-# per-tile state of the backward, one float array per thread (one base pointer, unsigned indices: see cpu.py's
-# forward), planes of TILE x TILE: T (walked back), TF (final T), GA (alpha's gradient), stop (tile-local, one
-# past the last entry composited), then S[d] (colour behind) and G[d] (the image's gradient); then lane scratch
-# of TILE each: alpha, 1 / (1 - alpha), T in front, weight, cg, sg, the 6 per-lane gradient sums, D colour sums.
-_B = TILE * TILE
-_U16, _UB = np.uint64(TILE), np.uint64(_B)
-_B_T, _B_TF, _B_GA, _B_STOP, _B_S = (np.uint64(i * _B) for i in range(5))
+from .cpu_tiles import TILE, _entry, _row_span, _span_params, _tile
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha, background, first, X):
-    """Fills the planes of X (see above) for one tile; lanes outside the image stay zero (no span reaches them).
-    Returns kmax, one past the last entry any pixel composited (at least ``first``)."""
-    zero = X.dtype.type(0)
-    X[:(4 + 2 * D) * _B] = zero
+def _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha, background, first):
+    """Per pixel of a tile: T (final transmittance, walked back), S (colour behind, starting with the
+    background), G / GA (the image's and alpha's gradients), TF (final T), stop (one past the last entry it
+    composited); and kmax, one past the last entry any pixel composited (at least ``first``)."""
+    P = w * h
+    T = np.empty(P, t_final.dtype)
+    S = np.empty((P, D), t_final.dtype)
+    G = np.empty((P, D), t_final.dtype)
+    GA = np.empty(P, t_final.dtype)
+    TF = np.empty(P, t_final.dtype)
+    stop = np.empty(P, np.int64)
     kmax = first
-    for py in range(h):
-        for px in range(w):
-            q = py * TILE + px
-            tf = t_final[cam, y0 + py, x0 + px]
-            X[q] = tf
-            X[_B + q] = tf
-            X[2 * _B + q] = grad_alpha[cam, y0 + py, x0 + px]
-            st = last[cam, y0 + py, x0 + px]
-            X[3 * _B + q] = st - first if st > 0 else 0
-            kmax = max(kmax, st)
-            for d in range(D):
-                X[(4 + d) * _B + q] = tf * background[d]
-                X[(4 + D + d) * _B + q] = grad_image[cam, y0 + py, x0 + px, d]
-    return kmax
+    for p in range(P):
+        px, py = x0 + p % w, y0 + p // w
+        T[p] = t_final[cam, py, px]
+        TF[p] = T[p]
+        stop[p] = last[cam, py, px]
+        kmax = max(kmax, stop[p])
+        GA[p] = grad_alpha[cam, py, px]
+        for d in range(D):
+            G[p, d] = grad_image[cam, py, px, d]
+            S[p, d] = T[p] * background[d]
+    return T, S, G, GA, TF, stop, kmax
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _lane_sum(X, o):
-    """Sum of the TILE = 16 lanes X[o:o + 16] in a fixed pairwise order (deterministic, the same every call)."""
-    s0 = (X[o + 0] + X[o + 8]) + (X[o + 4] + X[o + 12])
-    s1 = (X[o + 2] + X[o + 10]) + (X[o + 6] + X[o + 14])
-    s2 = (X[o + 1] + X[o + 9]) + (X[o + 5] + X[o + 13])
-    s3 = (X[o + 3] + X[o + 11]) + (X[o + 7] + X[o + 15])
-    return (s0 + s1) + (s2 + s3)
+def _fragment_grad(p, dx, dy, e, o, a, b, c, col, gcol, T, S, G, GA, TF, half, one, amax, acc):
+    """One fragment (pixel p of a Gaussian, exp(-sigma) = e), back to front: walks T and S back past it,
+    adds its colour gradient to gcol and returns the updated accumulators acc = (d mx, d my, d a, d b, d c,
+    d opacity)."""
+    D = col.shape[0]
+    gmx, gmy, ga, gb, gc, go = acc
+    raw = o * e
+    alpha = min(amax, raw)
+    inv = one / (one - alpha)    # 1 - alpha >= 0.01
+    Ti = T[p] * inv              # transmittance in front of this Gaussian
+    wgt = alpha * Ti
+    cg = half - half
+    sg = half - half
+    for d in range(D):
+        gcol[d] += wgt * G[p, d]
+        cg += col[d] * G[p, d]
+        sg += S[p, d] * G[p, d]
+    # dL/dalpha: own colour, everything behind (S, incl. background), the alpha output
+    d_alpha = Ti * cg - (sg - GA[p] * TF[p]) * inv
+    for d in range(D):
+        S[p, d] += col[d] * wgt
+    T[p] = Ti
+    if raw > amax:              # clamped: no gradient to opacity or the footprint
+        return gmx, gmy, ga, gb, gc, go
+    d_sigma = -d_alpha * alpha
+    return (gmx - d_sigma * (a * dx + b * dy), gmy - d_sigma * (c * dy + b * dx), ga + d_sigma * half * dx * dx,
+            gb + d_sigma * dx * dy, gc + d_sigma * half * dy * dy, go + d_alpha * e)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _store(per_pair, k, gcol, acc):
+    for d in range(gcol.shape[0]):
+        per_pair[k, 6 + d] = gcol[d]
+    gmx, gmy, ga, gb, gc, go = acc
+    per_pair[k, 0] += gmx
+    per_pair[k, 1] += gmy
+    per_pair[k, 2] += ga
+    per_pair[k, 3] += gb
+    per_pair[k, 4] += gc
+    per_pair[k, 5] += go
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _backward(params, boxes, offsets, work, background, width, height, tiles_x, t_final, last, grad_image,
-              grad_alpha, per_pair, consts, n_threads):
+              grad_alpha, per_pair, consts, frag_start, frag_pix, frag_e, frag_n, n_threads):
     """per_pair[k] gets tile-list entry k's gradient (its Gaussian as its camera sees it; params and boxes per
-    entry from cpu_tiles._pack): [dmx, dmy, da, db, dc, do, dcol...]. Per tile, entries back to front; per
-    entry and row, the TILE lanes at once: the lane's fragment test (alpha >= 1/255 on the forward's exp, and
-    k < stop[p], which is exactly "composited at k"), then, masked (alpha 0 elsewhere, which changes nothing):
-    T walked back by dividing by (1 - alpha) >= 0.01, the colour behind S, dL/dalpha, and the entry's gradient
-    terms summed per lane over its rows; the lanes are summed in a fixed order at the end (_lane_sum). No
-    atomics, no reassociation left to the compiler: the result does not depend on the thread count."""
+    entry from cpu_tiles._pack): [dmx, dmy, da, db, dc, do, dcol...].
+    When the forward recorded its fragments (frag_n has one entry per tile-list entry) they are replayed:
+    no row spans, exp or tests. Otherwise each is recomputed: the pixels of the entry's spans that it
+    composited (k < stop[p], sigma in range, alpha >= 1/255), which is exactly the recorded set. Either way the
+    same updates (_fragment_grad) in the same order: bitwise the same per_pair."""
     D = per_pair.shape[1] - 6
     half, one, amax, amin = consts[0], consts[1], consts[2], consts[3]
-    libm_all = consts[5] != 0
     zero = half - half
     n_tiles = tiles_x * (-(-height // TILE))
-    dt = t_final.dtype
-    L = (4 + 2 * D) * _B  # lane scratch after the planes
-    uAL, uINV, uTI, uWG = np.uint64(L), np.uint64(L + TILE), np.uint64(L + 2 * TILE), np.uint64(L + 3 * TILE)
-    uCG, uSG, uA = np.uint64(L + 4 * TILE), np.uint64(L + 5 * TILE), np.uint64(L + 6 * TILE)
-    uGC = np.uint64(L + 12 * TILE)
-    uG = np.uint64((4 + D) * _B)
+    replay = frag_n.shape[0] == params.shape[0]
     for t in prange(n_threads):  # tiles dealt round robin to the threads (see cpu._work_order)
-        X = np.empty(L + (12 + D) * TILE, dt)
-        e = np.empty(TILE, dt)
-        col = np.empty(D, dt)
         for i in range(t, work.shape[0], n_threads):
             gt = work[i]
-            cam, x0, y0, w, h, _, ys = _tile(gt, n_tiles, tiles_x, width, height, t_final)
-            xs, jf = _lanes(x0, y0, t_final)
-            first = offsets[gt]
-            kmax = _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha, background, first, X)
-            for k in range(kmax - 1, first - 1, -1):
+            cam, x0, y0, w, h, xs, ys = _tile(gt, n_tiles, tiles_x, width, height, t_final)
+            T, S, G, GA, TF, stop, kmax = _tile_state(cam, x0, y0, w, h, D, t_final, last, grad_image, grad_alpha,
+                                                      background, offsets[gt])
+            gcol = np.empty(D, t_final.dtype)
+            col = np.empty(D, t_final.dtype)
+            for k in range(kmax - 1, offsets[gt] - 1, -1):
+                if replay and frag_n[k] == 0:  # per_pair[k] stays 0, as recomputing leaves it
+                    continue
                 mx, my, a, b, c, o, smax = _entry(params, k, col)
-                libm = libm_all or not (smax <= SIGMA_POLY_MAX)
-                kf = dt.type(k - first + 1)
-                X[L + 6 * TILE:] = zero  # per-lane gradient sums
+                acc = (zero, zero, zero, zero, zero, zero)
+                for d in range(D):
+                    gcol[d] = zero
+                if replay:
+                    fs = frag_start[k]
+                    for j in range(fs, fs + frag_n[k]):
+                        p = np.int64(frag_pix[j])
+                        acc = _fragment_grad(p, xs[p % w] - mx, ys[p // w] - my, frag_e[j], o, a, b, c, col, gcol, T,
+                                             S, G, GA, TF, half, one, amax, acc)
+                    _store(per_pair, k, gcol, acc)
+                    continue
                 bx0, bx1, by0, by1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
                 ok, det, s = _span_params(a, b, c, smax, bx1 - bx0)
                 for py in range(by0, by1 + 1):
                     dy = ys[py - y0] - my
                     rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
-                    if rx0 > rx1:
-                        continue
-                    base = np.uint64(py - y0) * _U16
-                    for blk in range((rx0 - x0) // LANES, (rx1 - x0) // LANES + 1):
-                        j0 = np.uint64(blk * LANES)
-                        _row_exp(e, xs, jf, j0, mx, dy, a, b, c, smax, dt.type(rx0 - x0), dt.type(rx1 - x0), half,
-                                 zero, libm)
-                        b0 = base + j0
-                        for j in range(_U8):
-                            p = b0 + j
-                            ej = e[j]
-                            frag = (min(amax, o * ej) >= amin) & (kf <= X[_B_STOP + p])
-                            ej = ej if frag else zero
-                            e[j] = ej
-                            alpha = min(amax, o * ej)
-                            iv = one / (one - alpha)  # 1 - alpha >= 0.01
-                            ti = X[_B_T + p] * iv     # transmittance in front of this Gaussian
-                            X[uAL + j] = alpha
-                            X[uINV + j] = iv
-                            X[uTI + j] = ti
-                            X[uWG + j] = alpha * ti
-                            X[uCG + j] = zero
-                            X[uSG + j] = zero
-                            X[_B_T + p] = ti
-                        for d in range(D):
-                            cd = col[d]
-                            oS = _B_S + np.uint64(d) * _UB + b0
-                            oG = uG + np.uint64(d) * _UB + b0
-                            oC = uGC + np.uint64(d) * _U16 + j0
-                            for j in range(_U8):
-                                gd = X[oG + j]
-                                wj = X[uWG + j]
-                                X[oC + j] += wj * gd
-                                X[uCG + j] += cd * gd
-                                X[uSG + j] += X[oS + j] * gd
-                                X[oS + j] += cd * wj
-                        for j in range(_U8):
-                            p = b0 + j
-                            ej = e[j]
-                            # dL/dalpha: own colour, everything behind (S, incl. background), the alpha output
-                            behind = X[uSG + j] - X[_B_GA + p] * X[_B_TF + p]
-                            d_alpha = X[uTI + j] * X[uCG + j] - behind * X[uINV + j]
-                            # clamped alpha (o e > 0.99) or no fragment: no gradient to opacity or the footprint
-                            live = (ej != zero) & (o * ej <= amax)
-                            d_sigma = -d_alpha * X[uAL + j] if live else zero
-                            d_op = d_alpha * ej if live else zero
-                            dx = xs[j0 + j] - mx
-                            X[uA + j0 + j] -= d_sigma * (a * dx + b * dy)
-                            X[uA + _U16 + j0 + j] -= d_sigma * (c * dy + b * dx)
-                            X[uA + 2 * _U16 + j0 + j] += d_sigma * half * dx * dx
-                            X[uA + 3 * _U16 + j0 + j] += d_sigma * dx * dy
-                            X[uA + 4 * _U16 + j0 + j] += d_sigma * half * dy * dy
-                            X[uA + 5 * _U16 + j0 + j] += d_op
-                for q in range(6):
-                    per_pair[k, q] = _lane_sum(X, L + (6 + q) * TILE)
-                for d in range(D):
-                    per_pair[k, 6 + d] = _lane_sum(X, L + (12 + d) * TILE)
+                    for px in range(rx0, rx1 + 1):
+                        p = (py - y0) * w + (px - x0)
+                        if k >= stop[p]:
+                            continue
+                        dx = xs[px - x0] - mx
+                        sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                        if sigma < 0 or sigma > smax:
+                            continue
+                        e = np.exp(-sigma)
+                        if min(amax, o * e) < amin:
+                            continue
+                        acc = _fragment_grad(p, dx, dy, e, o, a, b, c, col, gcol, T, S, G, GA, TF, half, one, amax, acc)
+                _store(per_pair, k, gcol, acc)
 
 
 @njit(cache=True, nogil=True, parallel=True)
