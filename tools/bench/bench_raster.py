@@ -1,6 +1,7 @@
 """Rasterizer forward+backward time per backend, all in one run (ratios are what count on a shared box).
 
     python tools/bench/bench_raster.py [--quick] --json tools/results/bench_raster.json [--plot ...]
+    python tools/bench/bench_raster.py --fragments [--json tools/results/bench_raster_fragments.json]
 
 Workloads: 10k Gaussians at 200x200 and 50k at 400x400 (--quick: the first only); a random cloud in front
 of the camera (z 4 +- 0.5, scales 0.01-0.04, opacity 0.1-0.9, f = 1.1 W), the workload of our reference
@@ -8,6 +9,13 @@ notes. Each row: median ms of forward + backward (loss = image mean), as wall ti
 process's CPU time ("cpu_ms": the number to compare on a shared, loaded box; with --threads 1 it is the
 code's own cost, with more threads it adds up the threads), and max |image - reference image| (the
 reference renders every workload once, for the comparison, even where it is too slow to time often).
+
+--fragments: where the fragments go (tools/bench/fragments.py) for the 10k @ 200x200 cloud and one camera of
+the 346x260 blur+event step's scene (tools/bench/bench_train_scaling.make_step) with 10k and 50k Gaussians;
+the forward and backward kernels' CPU time per composited fragment (one thread, median of --repeats, also in
+cycles at the clock /proc/cpuinfo reports); 1- and 2-thread forward+backward timed alternately (parallel
+efficiency T1 / (2 T2), wall time); and the tile schedule's load balance for 2, 8 and 16 threads from the
+per-tile costs (visited pixels).
 """
 from __future__ import annotations
 
@@ -26,6 +34,7 @@ import torch  # noqa: E402
 
 from ev3dgs.splat.rasterize import cuda_available, rasterization  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tools/: pareto.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/bench/: fragments.py, bench_train_scaling.py
 from pareto import save_json  # noqa: E402
 
 
@@ -45,9 +54,9 @@ def cloud(n: int, width: int, seed: int = 0, device="cpu"):
     return [to(t) for t in (means, quats, scales, opac, colors)], to(torch.eye(4)), to(K)
 
 
-def run(backend, params, viewmat, K, size, threads):
+def run(backend, params, viewmat, K, size, threads, height=None):
     leaves = [p.clone().requires_grad_(True) for p in params]
-    image, alpha, _ = rasterization(*leaves, viewmat, K, size, size, backend=backend, threads=threads)
+    image, alpha, _ = rasterization(*leaves, viewmat, K, size, height or size, backend=backend, threads=threads)
     image.mean().backward()
     if image.is_cuda:
         torch.cuda.synchronize()
@@ -75,7 +84,13 @@ def main(argv=None) -> int:
                     help="result file (default: tools/results/bench_raster.json)")
     ap.add_argument("--plot", default="tools/results/bench_raster.png",
                     help="bar chart, '' for none (default: tools/results/bench_raster.png)")
+    ap.add_argument("--fragments", action="store_true",
+                    help="fragment statistics, per-fragment kernel cost and thread analysis instead (default: off)")
     args = ap.parse_args(argv)
+    if args.fragments:
+        json_path = args.json if args.json != ap.get_default("json") else "tools/results/bench_raster_fragments.json"
+        plot_path = args.plot if args.plot != ap.get_default("plot") else "tools/results/bench_raster_fragments.png"
+        return run_fragments(args.repeats, json_path, plot_path)
     torch.set_num_threads(args.threads)
     workloads = [(10_000, 200)] + ([] if args.quick else [(50_000, 400)])
     backends = ["reference", "cpu"] + (["cuda"] if cuda_available() else [])
@@ -102,6 +117,139 @@ def main(argv=None) -> int:
     if args.plot:
         plot(rows, args.plot)
     return 0
+
+
+def clock_mhz() -> float | None:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("cpu MHz"):
+                    return float(line.split(":")[1])
+    except OSError:
+        pass
+    return None
+
+
+def kernel_times(params, viewmat, K, width, height, repeats):
+    """Median CPU time (s) of the forward and backward kernels in forward+backward runs on one thread."""
+    import ev3dgs.splat.cpu as cpu
+
+    spent = {"_forward": [], "_backward": []}
+    real = cpu._parallel
+
+    def timed(kernel, *a):
+        t0 = time.thread_time()
+        out = real(kernel, *a)
+        name = getattr(kernel, "__name__", "")
+        if name in spent:
+            spent[name].append(time.thread_time() - t0)
+        return out
+
+    cpu._parallel = timed
+    try:
+        run("cpu", params, viewmat, K, width, 1, height)
+        for v in spent.values():
+            v.clear()
+        for _ in range(repeats):
+            run("cpu", params, viewmat, K, width, 1, height)
+    finally:
+        cpu._parallel = real
+    return {k: statistics.median(v) for k, v in spent.items()}
+
+
+def step_scene(n, width, height):
+    """One camera (the middle sub-pose) of make_step's scene, projected: (means, quats, scales, opacities,
+    colours), viewmat, K as rasterization() takes them, SH evaluated to colours."""
+    from bench_train_scaling import SUBPOSES, _viewmats
+
+    from ev3dgs.splat.model import GaussianModel
+    from ev3dgs.splat.sh import eval_sh
+
+    model = GaussianModel.random_in_bounds([[-0.6] * 3, [0.6] * 3], n, seed=0, sh_degree=3, init_opacity=0.3)
+    model.active_sh_degree = 3
+    f = 1.2 * width
+    K = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
+    vm = _viewmats(SUBPOSES)[SUBPOSES // 2]
+    with torch.no_grad():
+        campos = torch.linalg.inv(vm)[:3, 3]
+        colors = eval_sh(3, model.sh, model.means - campos).clamp_min(0)
+        params = [t.detach().clone() for t in (model.means, model.quats_normalised, model.scales, model.opacities)]
+    return params + [colors.detach().clone()], vm, K
+
+
+def run_fragments(repeats, json_path, plot_path) -> int:
+    from fragments import fragment_stats, schedule_efficiency
+
+    from ev3dgs.splat.cpu import set_numba_threads
+    from ev3dgs.splat.project import project_gaussians
+
+    torch.set_num_threads(1)
+    mhz = clock_mhz()
+    rows = []
+    for name, n, w, h in (("cloud", 10_000, 200, 200), ("step scene", 10_000, 346, 260),
+                          ("step scene", 50_000, 346, 260)):
+        params, vm, K = cloud(n, w) if name == "cloud" else step_scene(n, w, h)
+        with torch.no_grad():
+            pr = project_gaussians(params[0], params[1], params[2], params[3], vm, K, w, h)
+        st = fragment_stats(pr.means2d, pr.conics, params[4], params[3], pr.depths, pr.radii, w, h)
+        per_tile = st.pop("per_tile")
+        set_numba_threads(1)
+        kt = kernel_times(params, vm, K, w, h, repeats)
+        comp = st["composited"]
+        row = {"scene": name, "gaussians": n, "width": w, "height": h, **st,
+               "forward_ns_per_fragment": 1e9 * kt["_forward"] / comp,
+               "backward_ns_per_fragment": 1e9 * kt["_backward"] / comp,
+               "schedule_efficiency": {str(t): schedule_efficiency(per_tile["visited"], per_tile["list_length"], t)
+                                       for t in (2, 8, 16)},
+               "per_tile_visited": per_tile["visited"]}
+        if mhz:
+            row["forward_cycles_per_fragment"] = row["forward_ns_per_fragment"] * mhz / 1e3
+            row["backward_cycles_per_fragment"] = row["backward_ns_per_fragment"] * mhz / 1e3
+        # 1 and 2 threads alternately, wall time of forward+backward (the kernels' own threads)
+        t1, t2 = [], []
+        run("cpu", params, vm, K, w, 2, h)
+        for _ in range(repeats):
+            for th, acc in ((1, t1), (2, t2)):
+                t0 = time.perf_counter()
+                run("cpu", params, vm, K, w, th, h)
+                acc.append(time.perf_counter() - t0)
+        eff = sorted(a / (2 * b) for a, b in zip(t1, t2))
+        row["efficiency_2t"] = {"min": eff[0], "median": statistics.median(eff), "max": eff[-1]}
+        rows.append(row)
+        print(f"{name} {n} @ {w}x{h}: {comp} fragments ({st['fragments_per_pixel']:.1f}/px), "
+              f"below 1/255 {100 * st['share_below_cut']:.1f} %, behind T<1e-4 {100 * st['share_behind']:.1f} %, "
+              f"forward {row['forward_ns_per_fragment']:.1f} ns/fragment, backward "
+              f"{row['backward_ns_per_fragment']:.1f} ns/fragment, "
+              f"T1/(2 T2) median {row['efficiency_2t']['median']:.2f}"
+              f", schedule 8/16 threads {row['schedule_efficiency']['8']['by_list_length']:.2f}/"
+              f"{row['schedule_efficiency']['16']['by_list_length']:.2f}")
+    save_json(json_path, {"clock_mhz": mhz, "rows": rows}, ", one thread unless stated")
+    if plot_path:
+        plot_fragments(rows, plot_path)
+    return 0
+
+
+def plot_fragments(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    for r in rows:
+        v = sorted(r["per_tile_visited"], reverse=True)
+        ax[0].plot(v, label=f"{r['scene']} {r['gaussians'] // 1000}k @ {r['width']}x{r['height']}")
+        ax[1].plot([2, 8, 16], [r["schedule_efficiency"][str(t)]["by_list_length"] for t in (2, 8, 16)], "o-")
+    ax[0].set_yscale("log")
+    ax[0].set_xlabel("tiles, most expensive first")
+    ax[0].set_ylabel("pixels visited per tile")
+    ax[0].legend(fontsize=7)
+    ax[1].set_xlabel("threads")
+    ax[1].set_ylabel("schedule efficiency (model)")
+    ax[1].set_ylim(0, 1.05)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def plot(rows, path):
