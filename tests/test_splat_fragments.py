@@ -58,6 +58,8 @@ def test_composited_fragments_match_a_brute_force_count(seed, opaque):
     assert st["fragments_per_pixel"] == pytest.approx(st["composited"] / (W * H))
     assert sum(st["per_tile"]["composited"]) == st["composited"]
     assert 0 <= st["share_below_cut"] < 1 and 0 <= st["share_behind"] < 1
+    # every visited pixel lies in a visited row span of at most 16 pixels
+    assert st["visited"] <= 16 * st["row_spans"] and 0 < st["lane_fill_16"] <= 1
     if opaque:  # pixels stopped, and whole tiles: their later entries were never visited
         assert st["share_behind"] > 0 and st["skipped_after_tile_done"] > 0
 

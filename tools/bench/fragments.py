@@ -44,6 +44,8 @@ def _count(params, boxes, offsets, width, height, tiles_x, amax, amin, tmin, out
             for py in range(by0, by1 + 1):
                 dy = ys[py - y0] - my
                 rx0, rx1 = _row_span(ok, a, b, det, s, mx, dy, bx0, bx1)
+                if rx0 <= rx1 and n_done < P:
+                    out[4] += 1
                 for px in range(rx0, rx1 + 1):
                     if n_done == P:
                         out[3] += 1
@@ -89,7 +91,7 @@ def fragment_stats(means2d, conics, colors, opacities, depths, radii, width, hei
     gboxes = cpu._pixel_boxes(m, r, q, smax, width, height)
     offsets, ids = cpu._bin(gboxes, r, d, tiles_x, tiles_y, 1)
     params, boxes = cpu._pack(m, q, col, o, smax, offsets, ids, gboxes, width, height, tiles_x)
-    out = np.zeros(4, np.int64)
+    out = np.zeros(5, np.int64)
     # composited, composited by huge, entries, visited pixels
     per_tile = np.zeros((len(offsets) - 1, 4), np.int64)
     _count(params, boxes, offsets, width, height, tiles_x, np.float32(cpu.ALPHA_MAX), np.float32(cpu.ALPHA_MIN),
@@ -101,6 +103,8 @@ def fragment_stats(means2d, conics, colors, opacities, depths, radii, width, hei
             "entries": int(len(ids)), "composited": int(out[0]), "visited": visited,
             "share_below_cut": float(out[1] / max(visited, 1)), "share_behind": float(out[2] / max(visited, 1)),
             "skipped_after_tile_done": int(out[3]),
+            # row spans visited, and the share of TILE lanes they fill (a tile-row-wide SIMD layout's use)
+            "row_spans": int(out[4]), "lane_fill_16": float(visited / max(16 * out[4], 1)),
             "fragments_per_pixel": float(out[0] / (width * height)),
             "fragments_per_tile": {"median": float(np.median(comp)), "max": int(comp.max()),
                                    "mean": float(comp.mean())},
