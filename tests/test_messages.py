@@ -172,8 +172,9 @@ def test_ctrl_c_in_training_prints_the_command_that_resumes(trained, tmp_path, m
     (out / "ckpt.pt").unlink()
     checkpoint["written"] = False         # interrupted before the first checkpoint
     assert cli.main(argv) == 130
-    assert "no checkpoint was written yet (one every --checkpoint-every 5 steps), so there is nothing to resume" \
-        in one_line_error(capsys)
+    assert one_line_error(capsys) == ("error: interrupted; no checkpoint was written yet (one every "
+                                      "checkpoint_every steps), so there is nothing to resume: run the same "
+                                      "command again to start over\n")
 
 
 def test_ctrl_c_elsewhere_is_the_plain_line(trained, tmp_path, monkeypatch, capsys):

@@ -152,7 +152,7 @@ def run_summary(run_dir: str | Path) -> dict:
     except InputError as e:
         found, scene_note = None, str(e)
     metrics = _json(run / "metrics.json")
-    files = [n for n in ("model.pt", "ckpt.pt", "log.jsonl", "metrics.json", "trajectory.npz", "training.png",
+    files = [n for n in ("config.toml", "model.pt", "ckpt.pt", "log.jsonl", "metrics.json", "trajectory.npz", "training.png",
                          "response.json") if (run / n).is_file()]
     evals = len(list((run / "eval").glob("*.png"))) if (run / "eval").is_dir() else 0
     out = {"path": str(run), "variant": variant, "iterations": config.get("iterations"),

@@ -427,8 +427,8 @@ def _interrupt_hint(args, argv: list[str]) -> str | None:
 
     ckpt = Path(args.out) / "ckpt.pt"
     if not ckpt.is_file():
-        return (f"no checkpoint was written yet (one every --checkpoint-every {args.checkpoint_every} steps), so "
-                "there is nothing to resume: run the same command again to start over")
+        return ("no checkpoint was written yet (one every checkpoint_every steps), so there is nothing to "
+                "resume: run the same command again to start over")
     again = [a for a in argv if a != "--force"] + ([] if "--resume" in argv else ["--resume"])
     return f"the run keeps its last checkpoint, {ckpt}; continue it with: {shlex.join(['ev3dgs', *again])}"
 
