@@ -174,12 +174,9 @@ def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_no
 
 
 def test_frame_noise_that_is_not_auto_or_a_number_is_one_line_exit_2(scene_path, tmp_path, capsys):
-    try:  # argparse exits, the library's errors return: either way the process ends with 2 and one line
-        code = cli.main(["train", scene_path, "--out", str(tmp_path / "r"), "--set", "events.frame_noise=loud"])
-    except SystemExit as e:
-        code = e.code
+    assert cli.main(["train", scene_path, "--out", str(tmp_path / "r"), "--set", "events.frame_noise=loud"]) == 2
     err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and 'events.frame_noise: expected "auto" or a number' in err
+    assert err.count("\n") == 1 and 'events.frame_noise: expected "auto" or a number' in err
 
 
 def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_path, tmp_path):
@@ -195,7 +192,7 @@ def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_
         assert torch.equal(p, mapped.model.params[name]), name
     from ev3dgs.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="threshold-map needs --event-norm noise"):
+    with pytest.raises(ConfigError, match=r"\[threshold_map\] needs events.norm noise"):
         cfg(scene_path, threshold_map=True, event_norm="count")
 
 
@@ -300,7 +297,8 @@ def test_learn_response_is_refused_where_the_frames_are_not_decoded_with_srgb(sc
 
 
 def test_edi_prior_moves_the_fit_while_it_fades_and_is_refused_where_it_has_no_meaning(scene_path, tmp_path):
-    """The prior's term is logged and positive until its anneal point, zero after; it changes the run; it needs
+    """The prior's term is logged and positive until its anneal point (a short run's fade lasts at least
+    MIN_EDI_ANNEAL_STEPS = 100 steps: all 20 steps here); it changes the run; it needs
     the noise norm and the events, and a blur model in which the frame's event intensity is the mean of the
     sub-poses' (sRGB events averaged as display values are refused)."""
     from ev3dgs.errors import ConfigError
@@ -308,13 +306,13 @@ def test_edi_prior_moves_the_fit_while_it_fades_and_is_refused_where_it_has_no_m
     tr = Trainer(cfg(scene_path, iterations=20, edi_prior=0.05, edi_anneal=0.5), tmp_path / "a", quiet=True)
     tr.fit()
     log = [json.loads(line) for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
-    assert all(r["edi"] > 0 for r in log[:10]) and all(r["edi"] == 0 for r in log[10:])
+    assert all(r["edi"] > 0 for r in log)
     plain = Trainer(cfg(scene_path, iterations=20), tmp_path / "b", quiet=True)
     plain.fit()
     assert not torch.equal(plain.model.params["means"], tr.model.params["means"])
-    for kw, match in (({"event_norm": "count"}, "needs --event-norm noise"),
+    for kw, match in (({"event_norm": "count"}, "needs events.norm noise"),
                       ({"event_loss": False}, "needs the event loss"), ({"oracle": True}, "needs the event loss"),
-                      ({"edi_anneal": 0.0}, "edi-anneal"), ({"edi_prior": -1.0}, "edi-prior must be")):
+                      ({"edi_anneal": 0.0}, "edi_prior.anneal"), ({"edi_prior": -1.0}, "edi_prior.weight must be")):
         with pytest.raises(ConfigError, match=match):
             cfg(scene_path, **{"edi_prior": 0.05, **kw})
     with pytest.raises(ConfigError, match=r"\[edi_prior\]: the blurry frame's event intensity"):
@@ -322,7 +320,7 @@ def test_edi_prior_moves_the_fit_while_it_fades_and_is_refused_where_it_has_no_m
 
 
 def test_nan_guard_stops_and_keeps_the_checkpoint(scene_path, tmp_path, monkeypatch):
-    import ev3dgs.train.trainer as T
+    import ev3dgs.train.terms.blur as T
 
     real = T.average_loss
 
@@ -385,7 +383,9 @@ def test_cli_variants_train_eval_export_render(scene_path, tmp_path, flags, caps
     (["train", "SCENE", "--out", "X", "--set", "sh_interval=0"], "sh_interval"),
     (["train", "SCENE", "--out", "X", "--set", "sh_interval=fast"], 'sh_interval: expected "auto" or an integer'),
     (["train", "SCENE", "--out", "X", "--set", "hdr=true", "--set", "blur.space=srgb"], "hdr.*needs the linear-light"),
-    (["train", "SCENE", "--out", "X", "--set", "edi_prior.anneal=0"], "edi_prior.anneal"),
+    (["train", "SCENE", "--out", "X", "--set", "edi_prior.weight=0.05", "--set", "edi_prior.anneal=0"],
+     "edi_prior.anneal"),
+    (["train", "SCENE", "--out", "X", "--set", "edi_prior.anneal=0.3"], r"\[edi_prior\] needs weight"),
     (["train", "SCENE", "--out", "X", "--set", "response=true", "--naive"], "response.*needs the blur model"),
     (["train", "SCENE", "--out", "X", "--set", "blur.subpose_px=-1"], "blur.subpose_px must be a number >= 0"),
     (["train", "SCENE", "--out", "X", "--set", "events.frame_noise=-1"], "events.frame_noise must be auto or a sigma"),
