@@ -44,7 +44,7 @@ import warnings
 from pathlib import Path
 
 __all__ = ["Claim", "claim_output", "claim_run", "held_for", "release_all", "publish", "may_replace",
-           "rename_noreplace", "RUN_LOCK", "PAUSE_ENV"]
+           "rename_noreplace", "pause", "RUN_LOCK", "PAUSE_ENV"]
 
 RUN_LOCK = ".ev3dgs.lock"          # the claim of a folder written in place (a training run)
 PAUSE_ENV = "EV3DGS_TEST_PAUSE"
