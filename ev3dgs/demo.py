@@ -467,6 +467,9 @@ def main(argv=None) -> int:
                         help="a small demo to check that the chain runs, in a few minutes (3 views at 48x36, 2 "
                              f"samples, {TEST_ITERATIONS} steps); its numbers mean nothing (default: off)")
         args = ap.parse_args(argv)
+        from .claims import claim_run
+
+        claim_run(args.out)  # a second `make demo` on the same folder refuses at once (ev3dgs.claims)
         overrides = TEST_SIZE if args.test_size else {}
         iterations = args.iterations or (TEST_ITERATIONS if args.test_size else DEMO_ITERATIONS)
         try:

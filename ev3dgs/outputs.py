@@ -4,10 +4,12 @@ Every command that writes calls `check_output_file` / `check_output_dir` first (
 is wanted? writable? enough free space for an estimated size?), so that a bad --out fails in a second with
 one line instead of after an hour of rendering or training.
 
-Writers put their data in a temporary file beside the target, named `.NAME.tmp-PID[.ext]`, and rename it at
-the end (`atomic_path`). A killed process leaves that temporary behind; `remove_stale_temps` deletes the ones
-whose PID is no longer alive (or, without a PID in the name, that are older than a day), and never the
-temporary of a running process.
+Writers put their data in a temporary file (or folder) beside the target, named `.NAME.tmp-PID[.ext]`, and
+rename it at the end (`atomic_path`, `publish`). A killed process leaves that temporary behind;
+`remove_stale_temps` deletes the ones whose PID is no longer alive (or, without a PID in the name, that are
+older than a day), and never the temporary of a running process. Commands claim their output first
+(ev3dgs.claims): one process at a time writes it, and `publish` never replaces an output that appeared
+meanwhile.
 
 `H5Sink` is the file object schema.write hands to h5py: see its docstring for why HDF5 must never see a
 failed write.
@@ -26,7 +28,7 @@ from pathlib import Path
 from .errors import Ev3dgsError
 
 __all__ = ["OutputError", "os_error_message", "check_output_file", "check_output_dir", "refuse_existing",
-           "write_image", "temp_name", "atomic_path", "remove_stale_temps", "H5Sink", "STALE_AGE_S"]
+           "write_image", "temp_name", "atomic_path", "publish", "remove_stale_temps", "H5Sink", "STALE_AGE_S"]
 
 STALE_AGE_S = 24 * 3600          # a temporary without a PID in its name is stale after this long
 _TEMP = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<tag>[A-Za-z0-9_]+?)(?P<ext>\.[A-Za-z0-9]+)?$")
@@ -195,6 +197,14 @@ def _write_failure(e: BaseException, path: Path) -> OutputError:
     return OutputError(f"cannot write {path}: the write failed ({_mb(free)} free on the device)", _errno.EIO)
 
 
+def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Rename the finished temporary `tmp` to `path`; under this process's claim of `path` without replacing
+    an output that appeared meanwhile (ev3dgs.claims.publish)."""
+    from .claims import publish as _publish
+
+    _publish(tmp, path)
+
+
 def _remove(p: Path) -> None:
     with contextlib.suppress(OSError):  # never let the clean-up hide the real error (EROFS, EACCES...)
         os.unlink(p)
@@ -210,7 +220,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp = temp_name(path)
     try:
         yield tmp
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException as e:
         _remove(tmp)
         if _is_write_failure(e):
@@ -240,7 +250,7 @@ def _pid_alive(pid: int) -> bool:
 
 def remove_stale_temps(folder: str | os.PathLike, name: str | None = None,
                        max_age_s: float = STALE_AGE_S) -> list[Path]:
-    """Delete the temporaries (`.NAME.tmp-PID[.ext]`) that dead processes left in `folder`.
+    """Delete the temporaries (`.NAME.tmp-PID[.ext]`, files or folders) that dead processes left in `folder`.
 
     name: only the temporaries of this file name (use it in folders shared with other outputs);
     None = every temporary in the folder. A temporary whose PID is alive is kept; one without a PID
@@ -256,7 +266,8 @@ def remove_stale_temps(folder: str | os.PathLike, name: str | None = None,
         m = _TEMP.match(entry.name)
         if m is None or (name is not None and m["name"] != name):
             continue
-        if not entry.is_file(follow_symlinks=False):
+        is_dir = entry.is_dir(follow_symlinks=False)  # a folder built under a temporary name (render's frames)
+        if not (is_dir or entry.is_file(follow_symlinks=False)):
             continue
         tag = m["tag"]
         if tag.isdigit():
@@ -268,7 +279,10 @@ def remove_stale_temps(folder: str | os.PathLike, name: str | None = None,
                 continue
         if stale:
             try:
-                os.unlink(entry.path)
+                if is_dir:
+                    shutil.rmtree(entry.path)
+                else:
+                    os.unlink(entry.path)
                 removed.append(Path(entry.path))
             except OSError:
                 pass

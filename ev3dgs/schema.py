@@ -278,7 +278,7 @@ def write(scene: Scene, path: str | os.PathLike) -> Path:
     except (TypeError, ValueError) as e:
         raise SchemaError(f"/: config is not JSON serialisable ({e})") from None
     created = scene.created or datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-    from .outputs import H5Sink, OutputError, os_error_message, remove_stale_temps, temp_name
+    from .outputs import H5Sink, OutputError, os_error_message, publish, remove_stale_temps, temp_name
 
     tmp, sink = temp_name(path), None
     try:
@@ -293,7 +293,7 @@ def write(scene: Scene, path: str | os.PathLike) -> Path:
         sink.check()
         sink.close()
         validate(tmp, require_complete=False)
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException as e:
         if sink is not None:
             sink.close()

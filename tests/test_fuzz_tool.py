@@ -63,3 +63,13 @@ def test_disk_full_class(tmp_path):
     assert {r["mode"] for r in rows} == {"estimate", "no-estimate"}       # the up-front check on and off
     assert all(r["outcome"] in ("checked-first", "failed-cleanly", "completed") for r in rows), rows
     assert set(report["notes"]["disk-full"]["writers"]) == set(writers)
+
+
+def test_races_class(tmp_path):
+    """Two processes of one writer on one output (issue 53): one writes it, the other refuses; 0 lost outputs."""
+    report = _fuzz(tmp_path, "--classes", "races", "--cases", "2")
+    s = report["summary"]["races"]
+    assert s["cases"] == s["passed"] == 2 and s["lost-output"] == 0, (s, report["rows"]["races"])
+    rows = report["rows"]["races"]
+    assert [r["writer"] for r in rows] == ["sim-events", "sim-blur"]
+    assert all(sorted(r["rc"]) == [0, 2] for r in rows), rows

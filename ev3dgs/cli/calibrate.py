@@ -10,6 +10,8 @@ def _calibrate(args) -> int:
     from ..outputs import atomic_path, check_output_file
 
     check_output_file(args.out, force=args.force, make_parents=True)   # before reading and fitting
+    from ..claims import claim_output
+    claim_output(args.out, force=args.force)  # one writer (ev3dgs.claims)
     cal = calibrate_recording(args.input, boot=args.bootstrap, seed=args.seed)
     text = to_toml(cal)
     with atomic_path(args.out) as tmp:
@@ -30,6 +32,8 @@ def _compare(args) -> int:
     from ..sim.config import load_sim_config
 
     check_out_dir(args.out, args.force)                   # before reading and simulating
+    from ..claims import claim_output
+    claim_output(args.out, force=args.force, folder=True)
     cfg = load_sim_config(args.config)
     dark = args.aps_dark
     if dark is None:

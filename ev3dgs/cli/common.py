@@ -155,6 +155,10 @@ def run(main: Callable[[list[str] | None], int], argv: list[str] | None = None) 
             raise
         print(f"error: {_one_line(message)}", file=sys.stderr)
         return 2
+    finally:
+        from ..claims import release_all
+
+        release_all()  # the outputs this command claimed (ev3dgs.claims)
 
 
 def write_atomic(path: str | Path, data: bytes) -> None:

@@ -9,6 +9,8 @@ def _run(args) -> int:
 
     opts = {"e2nerf": {"layout": args.layout, "bins": args.bins}, "transforms": {"images": args.images},
             "aedat4": {"compression": args.compression}}.get(args.format, {})
+    from ..claims import claim_output
+    claim_output(args.out, force=args.force, folder=True)  # before any work
     export_dataset(args.scene, args.format, args.out, force=args.force, quiet=args.quiet, **opts)
     if not args.quiet:
         print(f"exported {args.scene} as {args.format} -> {args.out} (see {args.out}/README.txt for what was "

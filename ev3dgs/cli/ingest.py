@@ -24,6 +24,8 @@ def _output_file(out: str, estimated_bytes: int, force: bool) -> None:
     from ..outputs import check_output_file, remove_stale_temps
 
     check_output_file(out, estimated_bytes, make_parents=True, force=force)
+    from ..claims import claim_output
+    claim_output(out, force=force)  # one writer (ev3dgs.claims)
     if Path(out).parent.is_dir():
         remove_stale_temps(Path(out).parent, Path(out).name)
 

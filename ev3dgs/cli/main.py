@@ -25,6 +25,8 @@ def _check_train(args, cfg) -> None:
     from ..train.trainer import holds_run
 
     _need_backend(cfg.backend)
+    from ..claims import claim_run
+    claim_run(args.out)  # one process at a time writes a run folder (ev3dgs.claims)
     if not args.resume and not args.force and holds_run(args.out):
         import errno
 
@@ -174,6 +176,8 @@ def _eval(args) -> int:
         from ..errors import InputError
 
         raise InputError("give either --lpips NET (standard weights, fetched once) or --lpips-weights FILE")
+    from ..claims import claim_run
+    claim_run(args.run, option="run folder")  # eval writes into it
     m = evaluate(args.run, lpips_weights=args.lpips or args.lpips_weights, device=args.device, scene=args.scene,
                  force=args.force, other_scene=args.other_scene)
     for key, label in (("test", "novel views"), ("novel_view_unaligned", "novel views, unaligned"),
@@ -228,6 +232,8 @@ def _render(args) -> int:
         check_output_dir(args.out, force=args.force)
     else:
         check_output_file(args.out, make_parents=True, force=args.force)
+    from ..claims import claim_output
+    claim_output(args.out, force=args.force, folder=kind == "png")  # before any work (ev3dgs.claims)
     cfg, model = load_run(args.run, scene=args.scene, other_scene=args.other_scene)
     sc = schema.read(cfg.scene)
     _need_backend(cfg.backend)
@@ -265,6 +271,8 @@ def _export(args) -> int:
     if not str(args.out).lower().endswith(".ply"):
         raise InputError(f"--out {args.out}: export writes a .ply; give a file name ending in .ply")
     check_output_file(args.out, make_parents=True, force=args.force)
+    from ..claims import claim_output
+    claim_output(args.out, force=args.force)  # before any work
     _, model = load_run(args.run, find_scene=False)  # the model alone: no scene needed
     check_output_file(args.out, 4 * 62 * len(model), make_parents=True, force=True)
     save_ply(model, args.out)

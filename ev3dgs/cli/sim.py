@@ -85,6 +85,8 @@ def _events(args) -> int:
 
     # before simulating; schema.write checks the space it needs
     check_output_file(args.out, make_parents=True, force=args.force)
+    from ..claims import claim_output
+    claim_output(args.out, force=args.force)  # before any work
     cfg = load_sim_config(args.config)
     frames, t_us = load_frames_npz(args.input)
     ev = simulate_events(frames, t_us, cfg.dvs, seed=args.seed, isp=cfg.isp)
@@ -120,6 +122,8 @@ def _blur(args) -> int:
     if suffix not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
         raise InputError(f"--out must end in .png, .jpg or .tif, got {args.out!r}")
     check_output_file(args.out, force=args.force, make_parents=True)
+    from ..claims import claim_output
+    claim_output(args.out, force=args.force)  # before any work
     cfg = load_sim_config(args.config)
     frames, _ = load_frames_npz(args.input, need_t=False)
     if frames.ndim == 3:
@@ -152,6 +156,8 @@ def _make_dataset(args) -> int:
     from ..sim.scenes import load_scene, resolve_render
 
     check_output_file(args.out, force=args.force, make_parents=True)   # before loading the scene and rendering
+    from ..claims import claim_output
+    claim_output(args.out, force=args.force)  # before Blender starts
     spec = with_sensor_config(load_scene(args.scene), args.config)
     w, h = args.size if args.size else (None, None)
     render = resolve_render(spec, args.quick, width=w, height=h, views=args.views, test_views=args.test_views,
@@ -176,6 +182,11 @@ def _record(args) -> int:
     require_blender("record")
     from ..sim.record import record
 
+    from ..claims import claim_output
+    from ..sim.record import outputs as record_outputs
+
+    for option, path in record_outputs(args.out).items():  # all four, before Blender starts
+        claim_output(path, force=args.force, option=option)
     w, h = args.size if args.size else (346, 260)
     scene = args.scene
     tmp = None

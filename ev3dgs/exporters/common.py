@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..claims import may_replace
 from ..errors import InputError
-from ..outputs import OutputError, _pid_alive, check_output_dir, os_error_message, write_image
+from ..outputs import OutputError, _pid_alive, check_output_dir, os_error_message, publish, write_image
 
 _STAGE = ".{name}.tmp-{pid}"
 
@@ -62,21 +63,24 @@ def staged_dir(out: str | os.PathLike, force: bool = False) -> Iterator[Path]:
     _remove_stale_stages(out)
     stage = out.with_name(_STAGE.format(name=out.name, pid=os.getpid()))
     shutil.rmtree(stage, ignore_errors=True)
+    old = None
     try:
         stage.mkdir()
         yield stage
-        old = None
         if out.exists():
-            if not force and not _is_empty_dir(out):  # filled while we worked
+            if not may_replace(out) or (not force and not _is_empty_dir(out)):  # made or filled while we worked
                 raise OutputError(f"--out {out} is a folder that is not empty (filled while exporting); pass --force "
                                       "to replace its contents", _errno.ENOTEMPTY)
             old = out.with_name(f".{out.name}.old-{os.getpid()}")
             os.replace(out, old)
-        os.replace(stage, out)
+        publish(stage, out)   # never over a folder that appeared meanwhile (ev3dgs.claims)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
+        if old is not None and old.exists() and not os.path.lexists(out):
+            with contextlib.suppress(OSError):
+                os.rename(old, out)   # the earlier output back where it was
         if isinstance(e, OSError):
             raise OutputError(f"cannot write {os_error_message(e, out)}", e.errno) from None
         raise

@@ -241,19 +241,19 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
                  frame_timestamp=np.array([fr.timestamp for fr in aps], np.int64),
                  exposure=np.stack([EPOCH_US + soe, EPOCH_US + eoe], 1), imu_t=imu.t, gyro=gyro, accel=accel,
                  imu_axes="camera OpenCV axes: x right, y down, z forward; gyro deg/s, accel g (specific force)")
-    os.replace(tmp, traj_path)
+    from ..outputs import atomic_path, publish
+
+    publish(tmp, traj_path)
     timing["write"] = time.perf_counter() - t0
     if not keep_cache:
         shutil.rmtree(cache, ignore_errors=True)
     # the ground-truth intrinsics as a calibration file `ev3dgs-ingest davis --calibration` reads
     K_true = np.asarray(K, float)
-    outputs(out)["calibration"].write_text(
-        f"width = {W}\nheight = {H}\nfx = {K_true[0, 0]!r}\nfy = {K_true[1, 1]!r}\n"
-        f"cx = {K_true[0, 2]!r}\ncy = {K_true[1, 2]!r}\n")
-    sensor_path = outputs(out)["sensor"]
-    tmp = sensor_path.with_name(f".{sensor_path.name}.tmp-{os.getpid()}")
-    tmp.write_text(sensor_toml(spec.sensor), encoding="utf-8")
-    os.replace(tmp, sensor_path)
+    with atomic_path(outputs(out)["calibration"]) as tmp:
+        tmp.write_text(f"width = {W}\nheight = {H}\nfx = {K_true[0, 0]!r}\nfy = {K_true[1, 1]!r}\n"
+                       f"cx = {K_true[0, 2]!r}\ncy = {K_true[1, 2]!r}\n")
+    with atomic_path(outputs(out)["sensor"]) as tmp:
+        tmp.write_text(sensor_toml(spec.sensor), encoding="utf-8")
     return {"path": str(out), "trajectory": str(traj_path), "scene": spec.name, "width": W, "height": H,
             "frames": n_frames, "events": int(n_events), "imu": len(imu), "rendered": len(poses),
             "rendered_now": rendered, "duration_us": duration_us, "start_us": EPOCH_US,

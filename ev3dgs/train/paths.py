@@ -362,7 +362,7 @@ def write_frames(frames: Iterable[np.ndarray], out: str | os.PathLike, fps: floa
     and only then renamed into place: a broken file never takes the final name (OutputError). A PNG folder
     that exists already loses its old frame_NNNN.png files (other files are kept). ``info`` (a dict) receives
     "fourcc", the mp4 codec used."""
-    from ..outputs import OutputError, remove_stale_temps, temp_name
+    from ..outputs import OutputError, publish, remove_stale_temps, temp_name
 
     out = Path(out)
     kind = output_kind(out)
@@ -381,7 +381,7 @@ def write_frames(frames: Iterable[np.ndarray], out: str | os.PathLike, fps: floa
             how = "it cannot be read back" if back < 0 else f"{back} of {n} frames read back"
             codec = f" (fourcc {info['fourcc']})" if info.get("fourcc") else ""
             raise OutputError(f"the {kind} writer{codec} produced a broken file for {out}: {how}")
-        os.replace(tmp, out)
+        publish(tmp, out)
     finally:
         with contextlib.suppress(OSError):  # missing, or a read-only folder: never hide the real error
             tmp.unlink()
@@ -393,7 +393,8 @@ def _write_png_folder(frames, out: Path) -> int:
 
     import cv2
 
-    from ..outputs import OutputError, temp_name, write_image
+    from ..claims import may_replace, pause
+    from ..outputs import OutputError, publish, temp_name, write_image
 
     tmp = temp_name(out)
     shutil.rmtree(tmp, ignore_errors=True)
@@ -409,13 +410,14 @@ def _write_png_folder(frames, out: Path) -> int:
         written = sorted(tmp.glob("frame_*.png"))
         if len(written) != n or any(cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is None for p in written[-1:]):
             raise OutputError(f"the PNG frames for {out} could not be read back")
-        if out.is_dir():  # --force: replace the old frames, keep anything else
+        if out.is_dir() and may_replace(out):  # --force: replace the old frames, keep anything else
+            pause("publish")
             for old in out.glob("frame_[0-9][0-9][0-9][0-9].png"):
                 old.unlink()
             for p in written:
                 os.replace(p, out / p.name)
         else:
-            os.replace(tmp, out)
+            publish(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return n

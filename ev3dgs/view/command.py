@@ -82,6 +82,8 @@ def run(args) -> int:
         if not str(args.out).lower().endswith(".png"):
             raise InputError(f"--out {args.out}: view writes a PNG figure; give a file name ending in .png")
         check_output_file(args.out, 2 << 20, make_parents=True, force=args.force)
+        from ..claims import claim_output
+        claim_output(args.out, force=args.force)  # one writer (ev3dgs.claims)
     if Path(args.path).is_dir():
         content = data.load_run_content(args.path, scene=args.scene, other_scene=args.other_scene)
     elif args.scene is not None or args.other_scene:

@@ -50,6 +50,14 @@ Writer class (each command in a child process with a time limit):
                     other than 0 and 2), traceback (a traceback or "Exception ignored" on stderr), hang. train and eval write into the run folder file by file (each file atomic):
                     there every file present must be readable.
 
+Race class (two processes of one writer on the same output, the second started a seeded 0-1 s after the first):
+  races             every disk-full writer plus `ev3dgs-sim calibrate` and `compare`. Passes: one-refused (one
+                    exits 0 with the complete output, the other exits 2 with one line saying another ev3dgs
+                    process writes it), refused-late (the second came after the first finished and was refused
+                    because the output exists). Fails: lost-output (both exit 0: the first result replaced),
+                    corrupt-output, no-output, temp-left (a temporary, a claim or a run lock left), bad-message,
+                    crash, traceback, hang.
+
     python tools/bench/fuzz.py --seed 0 --json tools/results/fuzz.json
     python tools/bench/fuzz.py --classes disk-full --cases 2 --writers render-mp4,export-ply
 """
@@ -78,6 +86,7 @@ SHARED = Path("/work/shared/data/aedat/aestream_davis.aedat4")
 KINDS = ("flip", "truncate", "duplicate", "remove", "zero")
 READER_CLASSES = ("aedat2", "aedat3", "aedat4", "scene")
 NEW_CLASSES = ("disk-full", "aedat2-shift", "aedat2-ts-flip", "scene-plausible")
+NEW_CLASSES += ("races",)
 ALL_CLASSES = READER_CLASSES + NEW_CLASSES
 DEFAULT_CASES = {"aedat2": 100, "aedat3": 100, "aedat4": 100, "scene": 100, "disk-full": 112,
                  "aedat2-shift": 84, "aedat2-ts-flip": 84, "scene-plausible": 35}
@@ -88,6 +97,10 @@ PASS = {"aedat2-shift": ("clean-error", "realigned", "ok"),
 PASS.update({c: ("clean-error", "warning", "caught", "ok", "uncontradicted") for c in READER_CLASSES})
 SUMMARY = ("cases", "passed", "traceback", "crash", "hang", "corrupt-output", "silent-garbage", "warned-garbage",
            "other-failure")
+# races (a section of its own): two writers of one output
+DEFAULT_CASES["races"] = 34
+PASS["races"] = ("one-refused", "refused-late")
+SUMMARY = SUMMARY[:-1] + ("lost-output",) + SUMMARY[-1:]
 FEW = 4                        # records a single flipped timestamp may cost besides its own
 T_MAX = 2 ** 33                # no AEDAT 2.0 timestamp of a plausible read is above this (2.4 h past 2^32)
 TRAIN_REFUSE_S = 30.0          # train must refuse an impossible scene within this (2 shared cores, torch import)
@@ -948,6 +961,102 @@ def run_scene_plausible(n: int, rng: np.random.Generator, d: Path, args, cache: 
     return rows
 
 
+# ================================================================ races: two writers of one output
+RACE_DELAY_S = 1.0             # the second writer starts 0..this many seconds after the first
+
+
+def race_writers(p: dict, d: Path) -> dict:
+    """The disk-full writers plus calibrate and compare (on a recording calibrate can fit), as in writers()."""
+    rec = p["inp"] / "calib.aedat4"
+    if not rec.exists():
+        from ev3dgs.calib.synth import Truth, make_recording
+
+        make_recording(rec, Truth(), seed=1, seconds=0.4)
+    w = writers(p)
+    w["calibrate"] = ("ev3dgs-sim", lambda o: ["calibrate", rec, "--out", o / "sensor.toml", "--bootstrap", "4"],
+                      "sensor.toml", "file")
+    w["compare"] = ("ev3dgs-sim", lambda o: ["compare", rec, "--out", o / "report"], "report", "folder")
+    return w
+
+
+def _race_case(name: str, spec: tuple, p: dict, where: Path, delay: float, limit_s: float) -> dict:
+    """Two processes of writer `name` on one output, the second started `delay` s after the first. Passes:
+    one-refused (one exit 0 with the complete output, the other exit 2 with one line saying another process
+    writes it), refused-late (the second came after the first had finished: exit 2, the output exists).
+    Fails: lost-output (both exit 0: one result replaced the other), corrupt-output, no-output, bad-message,
+    temp-left (a temporary or a claim left behind), crash, traceback, hang."""
+    entry, argv, out_name, layout = spec
+    where.mkdir(parents=True)
+    if name == "eval":
+        shutil.copytree(p["run"], where / "run")
+    cmd = [sys.executable, __file__, "--cli", "estimate", entry, *map(str, argv(where))]
+    procs = []
+    t0 = time.perf_counter()
+    for k in range(2):
+        if k:
+            time.sleep(delay)
+        procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                                      env=_env(), stdin=subprocess.DEVNULL))
+    res = []
+    for q in procs:
+        try:
+            _, err = q.communicate(timeout=max(1.0, limit_s - (time.perf_counter() - t0)))
+            res.append((q.returncode, err))
+        except subprocess.TimeoutExpired:
+            q.kill()
+            res.append((None, q.communicate()[1]))
+    row = {"rc": [r for r, _ in res], "stderr": [e.strip()[-600:] for _, e in res],
+           "seconds": round(time.perf_counter() - t0, 2)}
+    if None in row["rc"]:
+        return {**row, "outcome": "hang", "detail": f"over {limit_s} s"}
+    for rc, err in res:
+        kind, why = _stderr_problem(err, rc != 0)
+        if kind == "traceback":
+            return {**row, "outcome": kind, "detail": why}
+        if rc not in (0, 2):
+            return {**row, "outcome": "crash", "detail": f"exit {rc}: {err.strip()[-200:]}"}
+        if kind:
+            return {**row, "outcome": kind, "detail": why}
+    out = where / out_name
+    bad, detail = _check_output(out, layout, None)
+    if bad:
+        return {**row, "outcome": bad, "detail": detail}
+    left = [str(q.relative_to(where)) for q in where.rglob("*")
+            if ".tmp-" in q.name or q.name.endswith(".claim") or q.name == ".ev3dgs.lock"]
+    if left:
+        return {**row, "outcome": "temp-left", "detail": ", ".join(left)[:300]}
+    rcs = sorted(row["rc"])
+    if rcs == [0, 0]:
+        return {**row, "outcome": "lost-output", "detail": "both writers exited 0: the first result was replaced"}
+    if rcs != [0, 2]:
+        return {**row, "outcome": "no-output", "detail": " | ".join(row["stderr"])[:300]}
+    if not out.exists():
+        return {**row, "outcome": "no-output", "detail": "exit 0 without the output"}
+    refusal = res[row["rc"].index(2)][1].strip().splitlines()[-1]
+    if "is being written by another ev3dgs process" in refusal:
+        return {**row, "outcome": "one-refused", "detail": refusal[:300]}
+    return {**row, "outcome": "refused-late", "detail": refusal[:300]}
+
+
+def run_races(n: int, rng: np.random.Generator, d: Path, args, cache: dict) -> list[dict]:
+    """Each writer in turn (case c: writer c mod count), the second process started a seeded 0..RACE_DELAY_S
+    after the first."""
+    names = [*WRITERS, "calibrate", "compare"]
+    used = {names[c % len(names)] for c in range(n)}
+    p = prepare_commands(d, args.cmd_time_limit, cache,
+                         need_run=any(k.startswith(("eval", "render", "export-ply", "view")) for k in used))
+    ws = race_writers(p, d)
+    assert list(ws) == names
+    rows = []
+    for c in range(n):
+        name = names[c % len(names)]
+        delay = round(float(rng.uniform(0, RACE_DELAY_S)), 3)
+        res = _race_case(name, ws[name], p, d / f"race{c}", delay, args.cmd_time_limit)
+        rows.append({"case": c, "writer": name, "delay_s": delay, **res})
+        shutil.rmtree(d / f"race{c}", ignore_errors=True)
+    return rows
+
+
 # ================================================================ table and main
 def _summary(cls: str, rows: list[dict]) -> dict:
     s = dict.fromkeys(SUMMARY, 0)
@@ -956,7 +1065,7 @@ def _summary(cls: str, rows: list[dict]) -> dict:
         o = r["outcome"]
         if o in PASS[cls]:
             s["passed"] += 1
-        elif o in ("traceback", "crash", "hang", "corrupt-output", "silent-garbage"):
+        elif o in ("traceback", "crash", "hang", "corrupt-output", "silent-garbage", "lost-output"):
             s[o] += 1
         elif o in ("garbage-warned", "kept-bad"):         # garbage returned, with a warning
             s["warned-garbage"] += 1
@@ -1035,6 +1144,8 @@ def main(argv=None) -> int:
             elif cls == "disk-full":
                 rows, meta = run_disk_full(n, rng, d, args, only, cache)
                 notes[cls] = meta
+            elif cls == "races":
+                rows = run_races(n, rng, d, args, cache)
             else:
                 rows = run_scene_plausible(n, rng, d, args, cache)
             results[cls] = rows

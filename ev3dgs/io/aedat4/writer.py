@@ -340,7 +340,9 @@ def write_aedat4(path, width: int, height: int, events=None, frames: list[FrameD
             out.write(struct.pack("<q", data_table_position))
             out.flush()
             os.fsync(out.fileno())
-        os.replace(tmp, path)
+        from ...outputs import publish
+
+        publish(tmp, path)   # never over an output another process made meanwhile (ev3dgs.claims)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
