@@ -183,7 +183,10 @@ def hot_pixels(rec: Recording, on, off, T: float, curve: tuple[float, float], c_
     hot |= busy
     idx = np.flatnonzero(hot)
     tot = np.asarray(on) + np.asarray(off)
-    lst = [(int(i % W), int(i // W), float(nq[i] / tq[i])) for i in idx[np.argsort(-tot[idx])]]
+    t_all = float(dt.sum())
+    # the rate in its quiet pairs; a pixel judged over every pair (no quiet pair): its rate over all of them
+    lst = [(int(i % W), int(i // W), float(nq[i] / tq[i] if judged[i] else nt[i] / t_all))
+           for i in idx[np.argsort(-tot[idx])]]
     return hot, lst
 
 
