@@ -34,6 +34,7 @@ ONSET_JUMP = 5.0            # an onset: the density of intervals jumps by this f
 MIN_IEI = 2000
 HOT_FACTOR = 5.0
 NB_FACTOR = 3.0          # ... and this many times its neighbours' count in the same pairs
+MIN_PAIRS_HOT = 6        # hot pixels are looked for in recordings with at least this many frame pairs
 MIN_QUIET = 2            # a pixel needs this many quiet frame pairs to be judged hot or not
 MIN_SHOT_EVENTS = 5
 
@@ -104,7 +105,8 @@ def hot_pixels(rec: Recording, on, off, T: float, curve: tuple[float, float], c_
         standard errors of 1), not bursts, and both halves of its quiet pairs hold events.
     A pixel with fewer than MIN_QUIET quiet pairs (the scene never rests there) is hot when its count over
     every pair exceeds twice HOT_FACTOR times its neighbours' median and their Poisson tail, in both halves.
-    The counts per pair come from the recording; `on` + `off` order the list, `static` gives the background."""
+    The counts per pair come from the recording; `on` + `off` order the list, `static` gives the background.
+    A recording with fewer than MIN_PAIRS_HOT frame pairs is not searched (none reported)."""
     from scipy.stats import poisson
 
     from .aps import pair_counts
@@ -132,6 +134,8 @@ def hot_pixels(rec: Recording, on, off, T: float, curve: tuple[float, float], c_
     quiet = quiet3.reshape(K, P)
     quiet[1:] &= still[:-1]
     quiet[:-1] &= still[1:]
+    if K < MIN_PAIRS_HOT:   # a few frame pairs say nothing about a rate being steady
+        return np.zeros(P, bool), []
     p_on, p_off = pair_counts(rec)
     n = (p_on + p_off).astype(float)                      # (K, P)
     dt = np.diff(rec.t_mid.astype(np.float64))[:, None] * 1e-6

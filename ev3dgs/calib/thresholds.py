@@ -321,6 +321,7 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
                 for j, c in ((0, c_on), (2, c_off)):
                     b = mom0[:, j + 1].sum()
                     sg.append(invert_moments(c, mom0[:, j].sum() / b)[1] if b > 0 else 0.0)
+                first = (c_on, c_off, keep.copy(), used.copy(), outlier.copy(), tot, bands[gi], smp.up, smp.dn)
                 if max(sg) > 0:
                     smp.sigma = (sg[0], sg[1])
                     smp.fit()
@@ -337,6 +338,10 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
                         outlier[used] = (np.abs(r / spread)[:, used] > 5).any(0)
                         keep = used & ~outlier
                         c_on, c_off = solve(tot[keep].sum(0))
+                    if not np.isfinite([c_on, c_off]).all():   # the second pass cannot solve: keep the first
+                        c_on, c_off, keep, used, outlier, tot, bands[gi], smp.up, smp.dn = first
+                        totals[gi] = tot
+                        smp.sigma = (0.0, 0.0)
             if np.isfinite([c_on, c_off]).all():
                 break
         if not run_starts:
@@ -454,7 +459,7 @@ def invert_moments(h_obs: float, v_obs: float, floor: float = 0.01) -> tuple[flo
     threshold fire more and weigh more). sigma = 0 when v_obs <= 0."""
     from scipy.optimize import least_squares
 
-    if not (np.isfinite(h_obs) and np.isfinite(v_obs)) or v_obs <= 0 or h_obs <= floor:
+    if not (np.isfinite(h_obs) and np.isfinite(v_obs)) or v_obs <= 1e-12 * h_obs ** 2 or h_obs <= floor:
         return h_obs, 0.0
 
     def res(p):
