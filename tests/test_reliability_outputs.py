@@ -229,7 +229,8 @@ def test_outputs_in_the_wrong_place(npz, tmp_path, capsys):
         (ingest_cli, ["davis", str(tmp_path / "missing.aedat4"), "--out", str(tmp_path / "o.h5")], "no such file"),
         (ingest_cli, ["davis", str(npz), "--out", str(tmp_path / "o.h5"), "--event-margin-ms", "nan"],
          "finite number"),
-        (ev3dgs_cli, ["train", "x.h5", "--out", str(tmp_path / "run"), "--set", "events.weight=inf"], "events.weight: must be finite"),
+        (ev3dgs_cli, ["train", "x.h5", "--out", str(tmp_path / "run"), "--set", "events.weight=inf"],
+         "events.weight: must be finite"),
     ]
     for mod, args, match in cases:
         one_line_error(capsys, exit_code(mod.main, args), match=match)
