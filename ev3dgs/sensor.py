@@ -11,6 +11,22 @@ import numpy as np
 LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
 BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+
+# The physical range of each numeric sensor setting: checked when a simulator config is read (ev3dgs.sim.config,
+# before any render or simulation) and when a scene declares it (ev3dgs.schema_validate); docs/simulator.md
+# gives the reasons. Outside them a value describes no sensor and only costs memory or time.
+RANGES = {
+    "threshold": (1e-3, 10.0),       # log units: 0.1 % contrast (40x below measured DVS thresholds) .. e^10
+    "sigma": (0.0, 1.0),             # log units: threshold mismatch, measured 0.02-0.05
+    "intensity": (1e-6, 1.0),        # fraction of white: log_knee, lowpass dark_intensity (120 dB .. white)
+    "period_us": (0.0, 1e6),         # refractory period: measured 0.1-10 ms; a second or more is a dead pixel
+    "rate_hz": (0.0, 1e4),           # per-pixel leak / shot noise: a pixel cannot fire faster than ~10 kHz
+    "cutoff_hz": (0.0, 1e6),         # photoreceptor bandwidth: measured up to ~10 kHz in bright light
+    "gain": (0.0, 100.0),            # ISP white-balance gains and |colour-matrix entries|
+    "iso": (1.0, 1e6),
+    "electrons": (1.0, 1e7),         # full well; read noise is in [0, this]
+    "dn": (-65535.0, 65535.0),       # APS dark level: within a 16-bit frame's range either way
+}
 _CHANNEL = {"R": 0, "G": 1, "B": 2}
 
 

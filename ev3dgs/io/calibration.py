@@ -83,6 +83,6 @@ def load_calibration(path: str | Path) -> Calibration:
             return _from_mapping(tomllib.loads(p.read_text()), p)
         if suffix == ".json":
             return _from_mapping(json.loads(p.read_text()), p)
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as e:
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError, RecursionError) as e:
         raise InputError(f"{p}: cannot parse calibration ({e})") from None
     return _from_xml(p)

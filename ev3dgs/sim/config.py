@@ -22,7 +22,10 @@ pattern = "RGGB"
 [isp]                        # raw <-> sRGB (blur); see ev3dgs.sim.isp
 [sensor_noise]               # shot + read noise of the blurry frame
 iso = 800
+[aps]                        # the real APS frames' dark level (calibrate writes it, compare reads it)
+dark_dn = 0.0
 ```
+Every numeric key must lie in its physical range (RANGES below; docs/simulator.md lists them with reasons).
 """
 from __future__ import annotations
 
@@ -32,7 +35,13 @@ from pathlib import Path
 from ..config import check, from_dict, load_toml
 from ..logmap import DEFAULT_LOG_KNEE
 
-from ..sensor import BAYER_PATTERNS
+from ..sensor import BAYER_PATTERNS, RANGES
+
+
+def within(key: str, value: float, lo: float, hi: float, low_open: bool = False) -> None:
+    """Range check of one numeric key: lo <= value <= hi (lo < value with low_open); RANGES holds the ranges."""
+    ok = (lo < value if low_open else lo <= value) and value <= hi
+    check(ok, f"{key} = {value:g} is outside its physical range {'(' if low_open else '['}{lo:g}, {hi:g}]")
 
 
 @dataclass(frozen=True)
@@ -43,8 +52,8 @@ class ThresholdMismatch:
     min_threshold: float = 0.01  # draws are clipped here so no pixel gets a zero or negative threshold
 
     def __post_init__(self):
-        check(self.sigma >= 0, "dvs.threshold_mismatch.sigma must be >= 0")
-        check(self.min_threshold > 0, "dvs.threshold_mismatch.min_threshold must be > 0")
+        within("dvs.threshold_mismatch.sigma", self.sigma, *RANGES["sigma"])
+        within("dvs.threshold_mismatch.min_threshold", self.min_threshold, *RANGES["threshold"])
 
 
 @dataclass(frozen=True)
@@ -54,7 +63,7 @@ class Refractory:
     period_us: float = 500.0
 
     def __post_init__(self):
-        check(self.period_us > 0, "dvs.refractory.period_us must be > 0")
+        within("dvs.refractory.period_us", self.period_us, *RANGES["period_us"], low_open=True)
 
 
 @dataclass(frozen=True)
@@ -73,7 +82,7 @@ class Leak:
     jitter_fraction: float = 0.1
 
     def __post_init__(self):
-        check(self.rate_hz > 0, "dvs.leak.rate_hz must be > 0")
+        within("dvs.leak.rate_hz", self.rate_hz, *RANGES["rate_hz"], low_open=True)
         check(0 <= self.rate_spread_decades <= 3, "dvs.leak.rate_spread_decades must be in [0, 3]")
         check(0 <= self.jitter_fraction <= 1, "dvs.leak.jitter_fraction must be in [0, 1]")
 
@@ -89,7 +98,7 @@ class ShotNoise:
     white_fraction: float = 0.25
 
     def __post_init__(self):
-        check(self.rate_hz > 0, "dvs.shot_noise.rate_hz must be > 0")
+        within("dvs.shot_noise.rate_hz", self.rate_hz, *RANGES["rate_hz"], low_open=True)
         check(0 <= self.white_fraction <= 1, "dvs.shot_noise.white_fraction must be in [0, 1]")
 
 
@@ -102,8 +111,8 @@ class LowPass:
     dark_intensity: float = 20.0 / 255.0
 
     def __post_init__(self):
-        check(self.cutoff_hz > 0, "dvs.lowpass.cutoff_hz must be > 0")
-        check(self.dark_intensity > 0, "dvs.lowpass.dark_intensity must be > 0")
+        within("dvs.lowpass.cutoff_hz", self.cutoff_hz, *RANGES["cutoff_hz"], low_open=True)
+        within("dvs.lowpass.dark_intensity", self.dark_intensity, *RANGES["intensity"])
 
 
 @dataclass(frozen=True)
@@ -145,9 +154,9 @@ class DVSConfig:
     color_filter: ColorFilter | None = None
 
     def __post_init__(self):
-        check(0 < self.pos_threshold <= 10, "dvs.pos_threshold must be in (0, 10]")
-        check(0 < self.neg_threshold <= 10, "dvs.neg_threshold must be in (0, 10]")
-        check(0 < self.log_knee <= 1, "dvs.log_knee must be in (0, 1]")
+        within("dvs.pos_threshold", self.pos_threshold, *RANGES["threshold"])
+        within("dvs.neg_threshold", self.neg_threshold, *RANGES["threshold"])
+        within("dvs.log_knee", self.log_knee, *RANGES["intensity"])
         check(self.reference in REFERENCE_MODES, f"dvs.reference must be one of {REFERENCE_MODES}")
 
     @property
@@ -172,7 +181,11 @@ class ISPConfig:
 
     def __post_init__(self):
         check(len(self.ccm) == 3, "isp.ccm must be 3x3")
-        check(all(g > 0 for g in self.white_balance), "isp.white_balance gains must be > 0")
+        for g in self.white_balance:
+            within("isp.white_balance gains", g, *RANGES["gain"], low_open=True)
+        for row in self.ccm:
+            for v in row:
+                within("isp.ccm entries", abs(v), 0.0, RANGES["gain"][1])
         check(self.mosaic == "none" or self.mosaic in BAYER_PATTERNS,
               f"isp.mosaic must be 'none' or one of {BAYER_PATTERNS}")
         import numpy as np
@@ -190,9 +203,20 @@ class SensorNoise:
     read_noise_electrons: float = 3.0
 
     def __post_init__(self):
-        check(self.iso > 0, "sensor_noise.iso must be > 0")
-        check(self.full_well_electrons > 0, "sensor_noise.full_well_electrons must be > 0")
-        check(self.read_noise_electrons >= 0, "sensor_noise.read_noise_electrons must be >= 0")
+        within("sensor_noise.iso", self.iso, *RANGES["iso"])
+        within("sensor_noise.full_well_electrons", self.full_well_electrons, *RANGES["electrons"])
+        within("sensor_noise.read_noise_electrons", self.read_noise_electrons, 0.0, RANGES["electrons"][1])
+
+
+@dataclass(frozen=True)
+class APSConfig:
+    """The APS frames' dark level in DN: `ev3dgs-sim calibrate` fits it and `ev3dgs-sim compare` subtracts it
+    before mapping a real frame to intensity. The simulator itself does not read it."""
+
+    dark_dn: float = 0.0
+
+    def __post_init__(self):
+        within("aps.dark_dn", self.dark_dn, *RANGES["dn"])
 
 
 @dataclass(frozen=True)
@@ -200,6 +224,7 @@ class SimConfig:
     dvs: DVSConfig = field(default_factory=DVSConfig)
     isp: ISPConfig = field(default_factory=ISPConfig)
     sensor_noise: SensorNoise | None = None
+    aps: APSConfig | None = None
 
 
 def load_sim_config(path: str | Path | None) -> SimConfig:

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..events import Events
+from .budget import check_noise_memory
 from .config import DVSConfig, ISPConfig
 from .effects.color import ColorFilterArray, luminance
 from .effects.leak import LeakDrift
@@ -67,7 +68,7 @@ def _warm_kernels() -> float:
     notify_first_compile("sim", [kernel, leak, lowpass, shot_noise], "event simulator kernels", "about 10 s")
 
     t = time.perf_counter()
-    every = DVSConfig(refractory=Refractory(), leak=Leak(), shot_noise=ShotNoise(rate_hz=1e6), lowpass=LowPass())
+    every = DVSConfig(refractory=Refractory(), leak=Leak(), shot_noise=ShotNoise(rate_hz=1e4), lowpass=LowPass())
     for dtype in (np.float32, np.float64):
         frames = np.array([0.1, 0.9, 0.2], dtype)[:, None, None] * np.ones((1, 2, 2), dtype)
         for cfg in (None, every):
@@ -177,6 +178,9 @@ class DVSSimulator:
             raise InputError("t_us out of range (|t| must be below 2**62 us)")
         if self.cfa is not None and frames.ndim != 4:
             raise InputError("a Bayer colour filter needs colour frames of shape (T, H, W, 3)")
+        if len(t_us):
+            start = int(t_us.min()) if self.t_prev is None or self._restart else int(self.t_prev)
+            check_noise_memory(self.cfg, self.height * self.width, (int(t_us.max()) - start) * 1e-6)
         parts = []
         knee = self.cfg.log_knee
         for frame, t1 in zip(frames, t_us.tolist()):
