@@ -19,6 +19,7 @@ import numpy as np
 
 from . import schema
 from .errors import SchemaError, SchemaWarning, raised_in_h5py
+from .sensor import RANGES
 from .schema import (_EVENT_DTYPES, _OPTIONAL, _PARTS, COLOR_FILTERS, COUNT_CONVENTIONS, FORMAT, TRANSFERS, VERSION,
                      _is_int, _open, _str)
 
@@ -179,8 +180,9 @@ def _validate(f: h5py.File, complete: bool, notes: list[str]) -> None:
             raise SchemaError(f"/: attr config must be a JSON object, found {type(config).__name__}")
     if "bounds" in f.attrs:
         b = np.asarray(f.attrs["bounds"])
-        if b.shape != (2, 3) or b.dtype.kind not in "iuf" or not np.all(np.isfinite(b)) or np.any(b[0] > b[1]):
-            raise SchemaError(f"/: attr bounds must be finite (2, 3) [min, max] with min <= max, found {b!r}")
+        if b.shape != (2, 3) or b.dtype.kind not in "iuf" or not np.all(np.isfinite(b)) or np.any(b[0] >= b[1]):
+            raise SchemaError(f"/: attr bounds must be finite (2, 3) [min, max] with min < max on every axis (a "
+                              f"box with volume), found {b.tolist() if b.size <= 16 else b.shape}")
         if np.abs(b).max() > MAX_COORD:
             raise SchemaError(f"/: attr bounds exceed {MAX_COORD:g} scene units in magnitude, found {b.tolist()}")
 
@@ -202,7 +204,11 @@ def _validate(f: h5py.File, complete: bool, notes: list[str]) -> None:
         _intrinsics(K)
         _plausible_camera(K, W, H, notes)
     if complete or "/camera/distortion" in f:
-        _finite(_ds(f, "/camera/distortion", np.float64, (5,), {})[()], "/camera/distortion")
+        d = _ds(f, "/camera/distortion", np.float64, (5,), {})[()]
+        _finite(d, "/camera/distortion")
+        _distortion(d, K if complete or "/camera/K" in f else None, W, H)
+    if "imu" in f:
+        _imu(f)
 
     exposure = None
     for group, items in _PARTS.items():
@@ -241,6 +247,54 @@ def _validate(f: h5py.File, complete: bool, notes: list[str]) -> None:
     _validate_events(f, W, H, exposure, notes)
 
 
+MAX_RADIAL_SCALE = 10.0     # OpenCV's radial factor 1 + k1 r^2 + k2 r^4 + k3 r^6 within [1/this, this] on the image
+MAX_TANGENTIAL = 1.0        # |p1|, |p2|: decentring of a real lens is under 1e-2
+
+
+def _distortion(d: np.ndarray, K: np.ndarray | None, W: int, H: int) -> None:
+    """OpenCV k1 k2 p1 p2 k3 that describe a lens: over the image's normalised radii (from K; 1 without K) the
+    radial map r -> r (1 + k1 r^2 + k2 r^4 + k3 r^6) keeps increasing (a map that folds back shows one scene
+    point twice) and scales by at most MAX_RADIAL_SCALE either way; tangential terms below MAX_TANGENTIAL."""
+    if not np.any(d):
+        return
+    k1, k2, p1, p2, k3 = (float(v) for v in d)
+    r_max = 1.0
+    if K is not None and K[0, 0] > 0 and K[1, 1] > 0:
+        xs = (np.array([0.0, W]) - K[0, 2]) / K[0, 0]
+        ys = (np.array([0.0, H]) - K[1, 2]) / K[1, 1]
+        r_max = float(np.sqrt(np.max(xs ** 2) + np.max(ys ** 2)))
+    r = np.linspace(0.0, r_max, 257)
+    r2 = r * r
+    scale = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+    slope = 1 + 3 * k1 * r2 + 5 * k2 * r2 ** 2 + 7 * k3 * r2 ** 3
+    what = None
+    if np.any(slope <= 0):
+        what = f"folds back at normalised radius {r[np.argmax(slope <= 0)]:.3g} (the image reaches {r_max:.3g})"
+    elif scale.min() < 1 / MAX_RADIAL_SCALE or scale.max() > MAX_RADIAL_SCALE:
+        what = (f"scales the image by {scale.min():.3g}..{scale.max():.3g} (no lens is outside "
+                f"1/{MAX_RADIAL_SCALE:g}..{MAX_RADIAL_SCALE:g})")
+    elif max(abs(p1), abs(p2)) > MAX_TANGENTIAL:
+        what = f"has tangential terms p1 {p1:g}, p2 {p2:g} beyond {MAX_TANGENTIAL:g}"
+    if what:
+        raise SchemaError(f"/camera/distortion: {d.tolist()} (OpenCV k1 k2 p1 p2 k3) {what}: not a lens")
+
+
+def _imu(f: h5py.File) -> None:
+    """IMU samples: finite values at non-decreasing times."""
+    for name in ("t", "accel", "gyro", "temperature"):
+        path = f"/imu/{name}"
+        if path not in f:
+            continue
+        a = f[path][()]
+        if name == "t":
+            back = np.flatnonzero(np.diff(a) < 0)
+            if back.size:
+                i = int(back[0]) + 1
+                raise SchemaError(f"/imu/t: not in time order (t[{i}] = {a[i]} after t[{i - 1}] = {a[i - 1]})")
+        elif a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+            raise SchemaError(f"/imu/{name}: value at index {_first(~np.isfinite(a))} is not finite")
+
+
 def _intrinsics(K: np.ndarray) -> None:
     """A pinhole [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 (finiteness is checked before)."""
     if not (K[0, 0] > 0 and K[1, 1] > 0):
@@ -261,6 +315,7 @@ ASPECT_ERROR, ASPECT_WARN = 10.0, 1.2      # fx / fy: square-ish pixels on every
 MAX_EXPOSURE_US = 3_600_000_000            # one hour: no frame of a camera is exposed longer
 EXPOSURE_WARN_RATIO = 100.0                # one exposure this many times the median: a unit or clock error?
 EVENT_MARGIN_ERROR_US = 10**12             # events 11.6 days away from every frame: a broken timestamp
+EXPOSURE_EVENT_RATIO = 100.0               # median exposure over the events' span (>= 1 s): impossible
 EVENT_MARGIN_WARN_US = 60_000_000          # a minute away from the frames' span (beyond its own length)
 
 
@@ -362,14 +417,24 @@ def _validate_events(f: h5py.File, W: int, H: int, exposure: np.ndarray | None, 
     dims: dict = {}
     ds = {name: _ds(f, f"/events/{name}", dt, ("E",), dims) for name, dt in _EVENT_DTYPES}
     ev = f["events"]
-    _real(ev, "pos_threshold", "/events", 0.0, True)
-    _real(ev, "neg_threshold", "/events", 0.0, True)
-    _real(ev, "refractory_us", "/events", 0.0, False)
-    for key in ("mismatch_sigma", "leak_rate_hz", "shot_noise_rate_hz"):  # optional sensor model, >= 0
-        if key in ev.attrs:
-            _real(ev, key, "/events", 0.0, False)
+    lo, hi = RANGES["threshold"]
+    for key in ("pos_threshold", "neg_threshold"):
+        v = _real(ev, key, "/events", 0.0, True)
+        if not lo <= v <= hi:
+            raise SchemaError(f"/events: attr {key} = {v:g} log units is outside the physical range [{lo:g}, {hi:g}]")
+    bounded = {"refractory_us": "period_us", "mismatch_sigma": "sigma", "leak_rate_hz": "rate_hz",
+               "shot_noise_rate_hz": "rate_hz"}
+    for key, kind in bounded.items():  # refractory_us required; the rest an optional sensor model, >= 0
+        if key in ev.attrs or key == "refractory_us":
+            v = _real(ev, key, "/events", 0.0, False)
+            if v > RANGES[kind][1]:
+                raise SchemaError(f"/events: attr {key} = {v:g} is outside the physical range [0, {RANGES[kind][1]:g}]")
     if "log_knee" in ev.attrs:  # the trainer takes log(knee) and divides by it: 0 is not a knee
-        _real(ev, "log_knee", "/events", 0.0, True)
+        v = _real(ev, "log_knee", "/events", 0.0, True)
+        lo, hi = RANGES["intensity"]
+        if not lo <= v <= hi:
+            raise SchemaError(f"/events: attr log_knee = {v:g} is outside the physical range [{lo:g}, {hi:g}] "
+                              "(a fraction of white)")
     cf = _str(ev.attrs.get("color_filter"))
     if cf not in COLOR_FILTERS:
         raise SchemaError(f"/events: attr color_filter must be one of {COLOR_FILTERS}, found {cf!r}")
@@ -428,5 +493,12 @@ def _validate_events(f: h5py.File, W: int, H: int, exposure: np.ndarray | None, 
             if away > margin and inside:     # with none inside, the warning below says it once
                 notes.append(f"/events/t: the {side} event at t = {t} us lies {away / 1e6:.3g} s outside the "
                              f"frames' time span {lo}..{hi} us")
+    if exposure is not None and E > 1 and len(exposure):
+        span = max(int(ds["t"][E - 1]) - int(ds["t"][0]), 1_000_000)
+        med = float(np.median(exposure[:, 1] - exposure[:, 0]))
+        if med > EXPOSURE_EVENT_RATIO * span:
+            raise SchemaError(f"/train/exposure: the median view is exposed for {med / 1e6:.6g} s, over "
+                              f"{EXPOSURE_EVENT_RATIO:g}x the events' whole span ({span / 1e6:.6g} s, at least 1 s "
+                              "counted): wrong exposure times or units")
     if E > 1 and ds["t"][0] == ds["t"][E - 1]:
         notes.append(f"/events/t: all {E} events have the same time {int(ds['t'][0])} us")

@@ -121,6 +121,10 @@ def load_train_data(path: str | Path, subposes: int, device="cpu", dtype=torch.f
                          "`compare` read its recording")
     if subposes < 1:
         raise InputError(f"--subposes must be >= 1, got {subposes}")
+    if np.any(np.asarray(sc.camera.distortion) != 0):   # the renderer is a pinhole: refuse, never ignore
+        raise InputError(f"{path}: /camera/distortion is {np.asarray(sc.camera.distortion).tolist()}: the trainer "
+                         "renders a pinhole camera and cannot model lens distortion; undistort the frames and "
+                         "events first (ev3dgs-ingest davis does, given the calibration)")
     N, H, W = len(tr), sc.camera.height, sc.camera.width
     n_sub = motion = None
     if subpose_px > 0 and subposes > 1 and not oracle:
