@@ -45,7 +45,12 @@ class OutputError(Ev3dgsError):
 
 
 def _mb(n: float) -> str:
-    return f"{n / 1e6:.1f} MB" if n < 1e9 else f"{n / 1e9:.1f} GB"
+    """A byte count in the unit that shows it (never '0.0 MB' for a few kilobytes)."""
+    n = max(float(n), 0.0)
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{int(n)} bytes"
 
 
 def os_error_message(e: OSError, path: str | os.PathLike | None = None) -> str:
