@@ -83,6 +83,9 @@ def load_recording(path) -> Recording:
         raise InputError(f"{path}: the recording has one APS frame: calibration needs at least two (a frame pair)")
     if not len(events):
         raise InputError(f"{path}: the recording has frames but no events")
+    from .checks import check_exposures
+
+    check_exposures(path, [int(f.exposure_start) for f in frames], [int(f.exposure_end) for f in frames], events.t)
     imgs, t_mid, expo = [], [], []
     full = 255.0
     for i, f in enumerate(frames):

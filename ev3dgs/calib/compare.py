@@ -41,11 +41,36 @@ IEI_BINS = np.logspace(1, 7, 49)
 _DARK = re.compile(r"^#\s*aps_dark_dn\s*=\s*([-+0-9.eE]+)", re.M)
 
 
-def dark_from_toml(path) -> float | None:
-    """The APS dark level that `calibrate` wrote as the comment `# aps_dark_dn = X`, or None."""
-    with open(path, encoding="utf-8") as f:
-        m = _DARK.search(f.read())
-    return float(m.group(1)) if m else None
+def dark_from_toml(path, cfg=None) -> float | None:
+    """The APS dark level of a sensor TOML: its [aps] dark_dn (`cfg`, the loaded SimConfig), else, in files
+    `calibrate` wrote before that key, the comment `# aps_dark_dn = X` (with a note; a value that is not a
+    finite number in the key's range is a ConfigError), else None."""
+    import math
+    import warnings
+
+    from ..errors import ConfigError
+    from ..sensor import RANGES
+
+    if cfg is not None and cfg.aps is not None:
+        return cfg.aps.dark_dn
+    try:
+        with open(path, encoding="utf-8") as f:
+            m = _DARK.search(f.read())
+    except (OSError, UnicodeDecodeError):
+        return None                      # load_sim_config has read it already: nothing more to find
+    if not m:
+        return None
+    try:
+        v = float(m.group(1))
+    except ValueError:
+        v = math.nan
+    lo, hi = RANGES["dn"]
+    if not lo <= v <= hi:
+        raise ConfigError(f"{path}: '# aps_dark_dn = {m.group(1)}' is not a dark level in DN in [{lo:g}, {hi:g}]; "
+                          "write it as [aps] dark_dn = X")
+    warnings.warn(f"{path}: the APS dark level ({v:g} DN) is read from the '# aps_dark_dn' comment of an older "
+                  "calibrate file; [aps] dark_dn = X is the key now")
+    return v
 
 
 HOLD_SIGMAS = 4.0       # denoise_frames: a change below this many frame-noise s.d. is not a change
@@ -145,6 +170,9 @@ def compare(rec: Recording, cfg, dark: float = 0.0, seed: int = 0, sim: Events |
 
     if not 0 <= dark < rec.full_scale - 1:
         raise InputError(f"APS dark level {dark} DN is outside [0, {rec.full_scale - 1:g})")
+    if rec.width < BLOCK or rec.height < BLOCK:
+        raise InputError(f"{rec.path}: a {rec.width}x{rec.height} sensor is too small to compare: the count maps "
+                         f"are compared in {BLOCK}x{BLOCK} blocks")
     sim = resimulate(rec, cfg, dark, seed, denoise) if sim is None else sim
     srec = replace(rec, events=sim)
     H, W, P = rec.height, rec.width, rec.width * rec.height

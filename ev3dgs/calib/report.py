@@ -78,11 +78,13 @@ def to_toml(cal: Calibration) -> str:
          f"{len(rec.events)} events, {rec.width}x{rec.height}",
          "# every +- is a bootstrap standard error over pixels; 'not estimated' = the recording does not pin it",
          f"# APS dark level {th.dark.value:.3g} DN{_pm(th.dark, ' DN')}",
-         f"# aps_dark_dn = {th.dark.value:.6g}   (read by ev3dgs-sim compare: the APS-to-intensity map)",
          f"# full scale {rec.full_scale:g} DN; "
          f"frame noise {th.frame_noise_dn:.2g} DN (median over intensity bands)",
          f"# thresholds from {th.pixels} pixels, {th.samples_up} up and {th.samples_down} down frame pairs, "
          f"{th.events_used} events",
+         "",
+         "[aps]",
+         f"dark_dn = {th.dark.value:.6g}   # read by ev3dgs-sim compare: the APS-to-intensity map",
          "",
          "[dvs]",
          f"pos_threshold = {_num(th.c_on.value)}   #{_pm(th.c_on)}",

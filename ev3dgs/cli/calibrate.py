@@ -2,7 +2,11 @@
 `ev3dgs-sim compare` (re-simulate a recording from its own APS frames and compare with its events)."""
 from __future__ import annotations
 
-from .common import add_output_options, finite_float
+from .common import add_output_options, finite_float, int_in
+
+MIN_BOOTSTRAP = 3              # resamples: a standard error needs more than two finite ones (calib.thresholds)
+MAX_BOOTSTRAP = 10000          # the standard errors settle long before; more only costs time
+SEED = int_in(0, 2**32 - 1)     # numpy's seeds
 
 
 def _calibrate(args) -> int:
@@ -37,7 +41,7 @@ def _compare(args) -> int:
     cfg = load_sim_config(args.config)
     dark = args.aps_dark
     if dark is None:
-        dark = (dark_from_toml(args.config) if args.config else None) or 0.0
+        dark = (dark_from_toml(args.config, cfg) if args.config else None) or 0.0
     res = compare_recording(args.input, cfg, dark=dark, seed=args.seed)
     res["config"] = args.config or "default"
     with staged_dir(args.out, force=args.force) as stage:
@@ -59,9 +63,10 @@ def add_calibrate_parsers(sub) -> None:
                                          "with APS frames -> a sensor TOML for --config")
     c.add_argument("input", help="recording with APS frames and events (.aedat4, AEDAT 3.1 or 2.0)")
     c.add_argument("--out", required=True, help="output sensor .toml (written atomically)")
-    c.add_argument("--bootstrap", type=int, default=200,
-                   help="bootstrap resamples for the standard errors (default %(default)s)")
-    c.add_argument("--seed", type=int, default=0, help="random seed of the bootstrap (default %(default)s)")
+    c.add_argument("--bootstrap", type=int_in(MIN_BOOTSTRAP, MAX_BOOTSTRAP), default=200,
+                   help=f"bootstrap resamples for the standard errors, {MIN_BOOTSTRAP} to {MAX_BOOTSTRAP} "
+                        "(default %(default)s)")
+    c.add_argument("--seed", type=SEED, default=0, help="random seed of the bootstrap, >= 0 (default %(default)s)")
     add_output_options(c)
     c.set_defaults(func=_calibrate)
     m = sub.add_parser("compare", help="re-simulate a recording's events from its APS frames and compare them "
@@ -73,7 +78,8 @@ def add_calibrate_parsers(sub) -> None:
                                                 "(written atomically)")
     m.add_argument("--aps-dark", type=finite_float,
                    help="APS dark level in DN subtracted before the simulation (default: the config's "
-                        "'# aps_dark_dn' comment that calibrate writes, else 0)")
-    m.add_argument("--seed", type=int, default=0, help="random seed of the simulator's noise (default %(default)s)")
+                        "[aps] dark_dn that calibrate writes, else 0)")
+    m.add_argument("--seed", type=SEED, default=0,
+                   help="random seed of the simulator's noise, >= 0 (default %(default)s)")
     add_output_options(m)
     m.set_defaults(func=_compare)

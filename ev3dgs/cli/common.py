@@ -49,6 +49,20 @@ def finite_float(text: str) -> float:
     return value
 
 
+def int_in(lo: int, hi: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer in [lo, hi] (hi None: no upper bound)."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if v < lo or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"{v} is outside [{lo}, {hi if hi is not None else 'inf'}]")
+        return v
+    parse.__name__ = "integer"
+    return parse
+
+
 def parser(prog: str, description: str) -> argparse.ArgumentParser:
     """A top-level parser with one-line errors and --version."""
     from .. import __version__
