@@ -245,8 +245,9 @@ _FORMATS = {"aedat4": "AEDAT 4.0", "aedat3.1": "AEDAT 3.1", "aedat2": "AEDAT 2.0
 _UNITS = {"events": "events", "frames": "frames", "imu": "samples", "triggers": "triggers"}
 _LABELS = {"file_size": "file size", "data_start": "data start", "table_position": "data table at",
            "has_table": "data table", "header_bytes": "header", "imu_samples": "IMU samples",
-           "sensor_size": "sensor", "imu_scale": "IMU scale", "on": "ON events", "off": "OFF events"}
-_BYTES = ("file_size", "data_start", "table_position", "header_bytes")
+           "sensor_size": "sensor", "imu_scale": "IMU scale", "on": "ON events", "off": "OFF events",
+           "skipped_bytes": "bytes skipped (realigned)"}
+_BYTES = ("file_size", "data_start", "table_position", "header_bytes", "skipped_bytes")
 _SKIP = ("path", "format", "streams", "warnings", "t_start", "t_end", "time_range", "counts")
 
 

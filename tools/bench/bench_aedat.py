@@ -18,6 +18,7 @@ A warm-up child reads each file once first (page cache).
 
     git archive b894e45 ev3dgs | tar -x -C /tmp/prev      # optional: the reader before this work
     python tools/bench/bench_aedat.py --events 20000000 --rounds 5 --previous /tmp/prev
+    python tools/bench/bench_aedat.py --resync --events 400000 --rounds 7 --previous /tmp/prev   # AEDAT 2.0
 """
 from __future__ import annotations
 
@@ -160,6 +161,63 @@ def bench_file(label: str, path: Path, rounds: int, inner: int) -> dict:
     return {"file": label, "file_mb": path.stat().st_size / 2**20, "rows": rows}
 
 
+# ---------------------------------------------------------------- AEDAT 2.0 mid-file realignment
+def _a2_child(tree: str, path: str) -> dict:
+    """One full AEDAT 2.0 read (events, frames, IMU, triggers: info() decodes everything) in this process."""
+    import warnings
+
+    sys.path.insert(0, tree)
+    from ev3dgs.io.jaer.aedat2 import Aedat2Reader
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with Aedat2Reader(path) as r:
+            info = r.info()
+    return {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "events": info["events"]}
+
+
+def bench_resync(rounds: int, events: int, previous: str | None) -> dict:
+    """A DAVIS240C AEDAT 2.0 file (tests/aedat2_build.py) read intact, with 3 bytes removed and 5 inserted
+    mid-file, and with 1 MiB of random bytes inserted; every read in its own child, the cases interleaved round
+    by round. Ratios to the intact read of the same round (CPU time): what realigning costs. With --previous,
+    the older reader's intact read too (the cost of the realignment pass on intact files)."""
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
+    from aedat2_build import HEADER, build
+
+    data = build(n_events=events, frames=4)[0]
+    mid = len(HEADER) + (len(data) - len(HEADER)) // 16 * 8 + 3
+    garbage = np.random.default_rng(0).integers(0, 256, 1 << 20, dtype=np.uint8).tobytes()
+    cases = {"intact": data, "remove 3": data[:mid] + data[mid + 3:],
+             "insert 5": data[:mid] + b"\x01" * 5 + data[mid:], "insert 1 MiB": data[:mid] + garbage + data[mid:]}
+    trees = {"current": str(Path(__file__).resolve().parents[2])}
+    if previous:
+        trees["previous"] = str(Path(previous).resolve())
+    rows = {f"{t} {c}": [] for t in trees for c in cases if t == "current" or c == "intact"}
+    with tempfile.TemporaryDirectory() as d:
+        paths = {}
+        for c, b in cases.items():
+            paths[c] = Path(d) / f"{c.replace(' ', '_')}.aedat"
+            paths[c].write_bytes(b)
+        for r in range(rounds + 1):                          # round 0 warms the page cache
+            for key in rows:
+                t, c = key.split(" ", 1)
+                out = subprocess.run([sys.executable, __file__, "--child-a2", trees[t], str(paths[c])],
+                                     capture_output=True, text=True, check=True)
+                if r:
+                    rows[key].append(json.loads(out.stdout.strip().splitlines()[-1]))
+    ratio = {}
+    for key, runs in rows.items():
+        base = rows["current intact"]
+        q = [a["cpu_s"] / b["cpu_s"] for a, b in zip(runs, base)]
+        ratio[key] = {"cpu_s_median": statistics.median(a["cpu_s"] for a in runs), "events": runs[0]["events"],
+                      "ratio_to_current_intact": {"min": min(q), "median": statistics.median(q), "max": max(q)}}
+    return {"file_mb": len(data) / 2**20, "records": (len(data) - len(HEADER)) // 8, "rounds": rounds,
+            "cases": ratio}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--events", type=int, default=20_000_000, help="events per synthetic file (default 20000000)")
@@ -170,11 +228,28 @@ def main(argv=None) -> int:
                     help="also time the AEDAT 4 reader of an older ev3dgs tree in DIR (e.g. `git archive <commit> "
                          "ev3dgs | tar -x -C DIR`) as 'previous' (default: none)")
     ap.add_argument("--child", nargs=3, metavar=("READER", "FILE", "INNER"), help=argparse.SUPPRESS)
+    ap.add_argument("--child-a2", nargs=2, metavar=("TREE", "FILE"), help=argparse.SUPPRESS)
+    ap.add_argument("--resync", action="store_true",
+                    help="instead: the AEDAT 2.0 reader on an intact file and on copies with bytes inserted or "
+                         "removed mid-file (--events DVS events; JSON to tools/results/bench_aedat_resync.json)")
     ap.add_argument("--json", default="tools/results/bench_aedat.json", help="output JSON (default %(default)s)")
     ap.add_argument("--plot", default="tools/results/bench_aedat.png", help="output plot (default %(default)s)")
     args = ap.parse_args(argv)
     if args.child:
         print(json.dumps(read_once(args.child[0], args.child[1], int(args.child[2]))))
+        return 0
+    if args.child_a2:
+        print(json.dumps(_a2_child(*args.child_a2)))
+        return 0
+    if args.resync:
+        load0 = os.getloadavg()
+        res = bench_resync(args.rounds, min(args.events, 2_000_000), args.previous)
+        save_json("tools/results/bench_aedat_resync.json" if args.json == "tools/results/bench_aedat.json"
+                  else args.json, res, f", load average {load0[0]:.1f} at start, {os.getloadavg()[0]:.1f} at end")
+        for k, v in res["cases"].items():
+            q = v["ratio_to_current_intact"]
+            print(f"{k:>24}: {v['cpu_s_median']:.3f} s CPU, {v['events']} events, x{q['median']:.2f} "
+                  f"[{q['min']:.2f}, {q['max']:.2f}] of the intact read")
         return 0
     global PREVIOUS
     if args.previous:

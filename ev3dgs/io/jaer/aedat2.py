@@ -71,17 +71,15 @@ class Aedat2Reader(RecordingReader):
         self.chunk_records = max(1, int(chunk_records))
         self.cache_records = cache_records
         self._info = self._cache = self._index = None
+        self.resync: list[dict] = []                 # mid-file realignments: byte and bytes skipped
         self._open_with_header(self._read_header)
         self._align()
         body = self.file_size - self.data_start
         self.n_records = body // 8
+        self._pieces, self._starts = [(self.data_start, self.n_records)], [0]
         if not self.n_records and END_OF_HEADER.decode("latin-1") not in self.header:
             self._warn(f"byte {self.data_start}: the file ends inside its header (no end-of-header line, no "
                        "data): truncated")
-        if body % 8:
-            self._warn(f"{body % 8} trailing bytes at byte {self.data_start + 8 * self.n_records} ignored: the data "
-                       f"({body} bytes from byte {self.data_start}) is not a whole number of 8-byte records "
-                       "(truncated file, or a damaged header)")
         self.chip, spec = jaer.chip_from_header(self.header, self.path)
         if sensor_size is not None:
             spec = jaer.chip_for_size(tuple(sensor_size)) if spec is None else \
@@ -99,6 +97,7 @@ class Aedat2Reader(RecordingReader):
         self.gyro_lsb_per_dps = gyro_lsb_per_dps or gyr
         if accel_lsb_per_g and gyro_lsb_per_dps:
             self._imu_note = None
+        self._resync()
         self._rec_lo, self._rec_hi = 0, self.n_records
         self._timeline()
 
@@ -140,6 +139,8 @@ class Aedat2Reader(RecordingReader):
         tail = (self.file_size - self.data_start) % 8
         if len(raw) < 8 * self.ALIGN_MIN_RECORDS or (not tail and self._in_order(raw) >= self.ALIGN_INTACT):
             return
+        if self._in_order(raw[:8 * self.RESYNC_RUN]) == 1.0:
+            return               # the first records read as records: a shift is further on (_resync finds it)
         # a shifted record's 'timestamp' mixes address bytes into it: measured 49-95 % of steps in order at the
         # seven wrong offsets of a DAVIS346 file, 99.7 % at the right one
         scores = [self._in_order(raw[k:]) for k in range(8)]
@@ -161,6 +162,224 @@ class Aedat2Reader(RecordingReader):
             raise AedatError(f"{self.path}: {msg}")
         self._warn(f"{msg}; reading from byte {self.data_start + best}")
         self.data_start += best
+
+    # ----- mid-file: bytes inserted or removed shift every record after them -----
+    RESYNC_WINDOW = 64                       # records judged together: below RESYNC_VALID of them valid = a break
+    RESYNC_VALID = 0.8
+    RESYNC_RUN = 32                          # consecutive valid records that confirm an alignment after a break
+    RESYNC_STEP = 1 << 28                    # us: a forward timestamp step above this (4.5 min) is not a record's
+    RESYNC_SEARCH = 1 << 16                  # bytes searched per try after a break (doubling up to a chunk)
+    RESYNC_CONTINUOUS = 1 << 18              # bytes searched for an alignment continuing the break's time
+    RESYNC_BACK = 8                          # records before a break where the search for the next run starts
+    RESYNC_NEAR = 1 << 20                    # us: records this close before a realigned run are kept (~1 s)
+    RESYNC_MAX = 64                          # realignments in one file: more is damage, not a few slips
+    RESYNC_MAX_BREAKS = 4096                 # breaks searched at all (each search reads at most ~2 MiB)
+
+    def _addr_ok(self, a: np.ndarray) -> np.ndarray:
+        """Which uint32 words are addresses the chip can write (x/y inside the sensor, a known word type)."""
+        if self.spec.layout == "dvs128":
+            return (a & 0x7FFF0000) == 0
+        w, h = self._size
+        aps = (a >> 31) == 1
+        typ = (a >> 10) & 3
+        inside = (((a >> 12) & 0x3FF) < w) & (((a >> 22) & 0x1FF) < h)
+        special = ~aps & ((typ & 1) == 1) & ((a & 0x7FFFF000) == 0)
+        imu = aps & (typ == 3) & (((a >> 28) & 7) < 7)
+        return (~aps & ((typ & 1) == 0) & inside) | special | imu | (aps & (typ != 3) & inside)
+
+    def _valid(self, rec: np.ndarray, anchor: int | None):
+        """Records that read as records at this alignment: a valid address and a timestamp at most RESYNC_STEP
+        ahead of the latest valid one before it, never behind it (32-bit wraps unwrapped step by step).
+        -> (valid mask, the reference time before each record (unwrapped, int64), the offset to raw values)."""
+        a = rec[:, 0]
+        u = rec[:, 1].astype(np.int64)
+        start = int(u[0]) if anchor is None else anchor
+        d = np.diff(u, prepend=start)
+        d = ((d + (1 << 31)) & 0xFFFFFFFF) - (1 << 31)
+        tu = start + np.cumsum(d)
+        ok = self._addr_ok(a) & (d >= 0) & (d < self.RESYNC_STEP)
+        ref = np.maximum.accumulate(np.where(ok, tu, np.iinfo(np.int64).min))
+        ref = np.maximum(np.concatenate([[start], ref[:-1]]), start)
+        valid = self._addr_ok(a) & (tu >= ref) & (tu - ref < self.RESYNC_STEP)
+        return valid, tu
+
+    def _first_run(self, valid: np.ndarray, run: int) -> int:
+        """Index of the first `run` consecutive True in valid, -1 if none."""
+        if len(valid) < run:
+            return -1
+        c = np.concatenate([[0], np.cumsum(valid)])
+        hit = np.flatnonzero(c[run:] - c[:-run] == run)
+        return int(hit[0]) if hit.size else -1
+
+    def _search(self, start: int, last_t: int | None, home: int):
+        """The first byte >= start from which RESYNC_RUN consecutive records are valid at some alignment ->
+        (byte, raw t there, whether t continues last_t) or None. One whose time continues last_t (within
+        RESYNC_STEP) is preferred while one is found within RESYNC_CONTINUOUS bytes; else the earliest (a clock
+        reset). The current alignment (byte % 8 == home) wins when its run starts within RESYNC_RUN records of
+        the earliest: data that repeats one address reads as records at a second alignment too."""
+        def pick(cands: dict):
+            first = min(cands.values())
+            own = cands.get(home)
+            return own if own is not None and own[0] <= first[0] + 8 * self.RESYNC_RUN else first
+
+        span, first_any = self.RESYNC_SEARCH, {}
+        pos = start
+        while pos + 8 * self.RESYNC_RUN <= self.file_size:
+            self._f.seek(pos)
+            raw = self._f.read(span + 8 * (self.RESYNC_RUN + 1))
+            cont_c = {}
+            for k in range(8):
+                n = (len(raw) - k) // 8
+                if n < self.RESYNC_RUN:
+                    continue
+                rec = np.frombuffer(raw[k:k + 8 * n], ">u4").reshape(-1, 2)
+                u = rec[:, 1].astype(np.int64)
+                d = ((np.diff(u, prepend=u[0]) + (1 << 31)) & 0xFFFFFFFF) - (1 << 31)
+                ok = self._addr_ok(rec[:, 0]) & (d >= 0) & (d < self.RESYNC_STEP)
+                ok[0] = bool(self._addr_ok(rec[:1, 0])[0])
+                c = np.concatenate([[0], np.cumsum(ok)])
+                runs = np.flatnonzero(c[self.RESYNC_RUN:] - c[:-self.RESYNC_RUN] == self.RESYNC_RUN)
+                runs = runs[8 * runs + k < span]             # starts inside this span: the next try goes on
+                if not runs.size:
+                    continue
+                a = (pos + k) % 8
+                j = int(runs[0])
+                first_any.setdefault(a, (pos + k + 8 * j, int(u[j])))
+                if last_t is not None:
+                    step = ((u[runs] - last_t + (1 << 31)) & 0xFFFFFFFF) - (1 << 31)
+                    cont = np.flatnonzero((step >= -self.RESYNC_STEP) & (step < self.RESYNC_STEP))
+                    if cont.size:
+                        j = int(runs[cont[0]])
+                        cont_c[a] = (pos + k + 8 * j, int(u[j]))
+            if cont_c:
+                return (*pick(cont_c), True)
+            if first_any and (last_t is None or pos + span - start >= self.RESYNC_CONTINUOUS):
+                return (*pick(first_any), False)
+            pos += span
+            span = min(2 * span, max(8 * self.chunk_records, self.RESYNC_SEARCH))
+        return (*pick(first_any), False) if first_any else None
+
+    def _resync(self) -> None:
+        """One pass over the data: where the records stop reading as records (a run of RESYNC_WINDOW with under
+        RESYNC_VALID valid) and another alignment reads as records again, bytes were inserted or removed: the
+        records before and after are kept as separate pieces and the bytes between are skipped, with a warning
+        naming them (strict: AedatError). A break after which the same alignment reads on (outliers, a clock
+        reset) is left to the per-record checks of the decoding pass."""
+        pieces, skipped, breaks = [], [], 0
+        pos = self.data_start                              # start of the current piece
+        scan, anchor = pos, None                           # next record to judge, reference time before it
+        win = self.RESYNC_WINDOW
+        cap = 8 * max(self.chunk_records, 16 * win)
+        while self.file_size - scan >= 8 * win:
+            self._f.seek(scan)
+            raw = self._f.read(min(cap, (self.file_size - scan) // 8 * 8))
+            rec = np.frombuffer(raw, ">u4").reshape(-1, 2)
+            valid, tu = self._valid(rec, anchor)
+            c = np.concatenate([[0], np.cumsum(valid)])
+            low = np.flatnonzero(c[win:] - c[:-win] < self.RESYNC_VALID * win)
+            if not low.size:
+                if len(rec) >= (self.file_size - scan) // 8:
+                    break
+                keep = max(1, len(rec) - win)              # judge the last window again with the next chunk
+                anchor = self._anchor(valid[:keep], tu[:keep], anchor)
+                scan += 8 * keep
+                continue
+            i = int(low[0])
+            f = i + int(np.argmin(valid[i:]))              # the first record that does not read as one
+            last = self._anchor(valid[:f], tu[:f], anchor)
+            last_raw = None if last is None else last & 0xFFFFFFFF
+            # the first records past the damage can read as records by chance: search from a little before
+            hit = self._search(max(pos, scan + 8 * (f - self.RESYNC_BACK)), last_raw, pos % 8)
+            if hit is None:
+                if self.file_size - (scan + 8 * f) >= 8 * 4 * self.RESYNC_RUN:   # garbage to the end
+                    end = scan + 8 * f
+                    pieces.append((pos, (end - pos) // 8))
+                    skipped.append((end, self.file_size))
+                    pos = None
+                break
+            at, t_raw, continuous = hit
+            breaks += 1
+            garbage = continuous and at - (scan + 8 * f) >= 8 * win     # a long run overwritten or inserted
+            if (at - pos) % 8 == 0 and not garbage:        # the same alignment reads on: left to the decoding
+                scan, anchor = (at, None) if at > scan or anchor is not None else (scan + 8, None)
+                if breaks > self.RESYNC_MAX_BREAKS:        # records that keep breaking: the decoding pass judges
+                    break
+                continue
+            if len(pieces) >= self.RESYNC_MAX:
+                raise AedatError(f"{self.path}: byte {at}: the 8-byte records lose their alignment more than "
+                                 f"{self.RESYNC_MAX} times: damaged data")
+            # the run found starts at the first whole record after the damage or one record later, and the
+            # damage ends at most 15 bytes before that record: nothing within 23 bytes before the run is kept
+            end = min(scan + 8 * f, pos + 8 * max((at - 23 - pos) // 8, 0))
+            end = self._trim(max(end, pos), pos, t_raw)
+            at = min(at + 16, self.file_size)  # the first records after the damage may hold its bytes yet read as ones
+            pieces.append((pos, (end - pos) // 8))
+            skipped.append((end, at))
+            pos = scan = at
+            anchor = None
+        tail = 0 if pos is None else (self.file_size - pos) % 8
+        if pos is not None:
+            pieces.append((pos, (self.file_size - pos) // 8))
+        if tail:
+            body = self.file_size - pos
+            self._warn(f"{tail} trailing bytes at byte {self.file_size - tail} ignored: the data ({body} bytes from "
+                       f"byte {pos}) is not a whole number of 8-byte records (truncated file, or a damaged header)")
+        if not skipped:
+            return
+        where = ", ".join(f"{b - a} at byte {a}" for a, b in skipped)
+        total = sum(b - a for a, b in skipped)
+        msg = (f"skipped {total} bytes that do not read as 8-byte records ({where}): bytes inserted, removed or "
+               "overwritten mid-file; the records after them realigned")
+        if pos is None:
+            msg += "; the last run reads as records at no alignment (damaged to the end of the file)"
+        if self.strict:
+            raise AedatError(f"{self.path}: {msg}")
+        self._warn(msg)
+        self.resync = [dict(byte=a, skipped=b - a) for a, b in skipped]
+        self._pieces = [p for p in pieces if p[1] > 0]
+        self._starts = np.cumsum([0] + [n for _, n in self._pieces[:-1]]).tolist()
+        self.n_records = sum(n for _, n in self._pieces)
+
+    def _trim(self, end: int, pos: int, t_next: int) -> int:
+        """Records just before a break that read as records by chance (a shifted read's timestamp can land
+        within RESYNC_STEP): drop those, up to RESYNC_RUN of them, whose time is not within RESYNC_NEAR before
+        the first record after the break."""
+        n = min((end - pos) // 8, self.RESYNC_RUN)
+        if n <= 0:
+            return end
+        self._f.seek(end - 8 * n)
+        u = np.frombuffer(self._f.read(8 * n), ">u4")[1::2].astype(np.int64)
+        step = ((t_next - u + (1 << 31)) & 0xFFFFFFFF) - (1 << 31)
+        near = (step >= 0) & (step < self.RESYNC_NEAR)
+        last = np.flatnonzero(near)
+        return end - 8 * (n - (int(last[-1]) + 1 if last.size else n))
+
+    @staticmethod
+    def _anchor(valid: np.ndarray, tu: np.ndarray, anchor: int | None) -> int | None:
+        idx = np.flatnonzero(valid)
+        return int(tu[idx[-1]]) if idx.size else anchor
+
+    def _piece(self, v: int) -> int:
+        from bisect import bisect_right
+        return max(0, bisect_right(self._starts, v) - 1)
+
+    def _byte(self, v: int) -> int:
+        """File byte of (virtual) record v."""
+        i = self._piece(v)
+        return self._pieces[i][0] + 8 * (v - self._starts[i])
+
+    def _read_records(self, v: int, n: int) -> bytes:
+        """The bytes of records v .. v+n-1, across the pieces the realignment left."""
+        out = []
+        i = self._piece(v)
+        while n > 0 and i < len(self._pieces):
+            b0, pn = self._pieces[i]
+            off = v - self._starts[i]
+            take = min(n, pn - off)
+            self._f.seek(b0 + 8 * off)
+            out.append(self._f.read(8 * take))
+            v, n, i = v + take, n - take, i + 1
+        return out[0] if len(out) == 1 else b"".join(out)
 
     # ----- header -----
     def _read_header(self) -> str:
@@ -196,12 +415,10 @@ class Aedat2Reader(RecordingReader):
         resets = []
         wrap = Wrap32()
         left, rec0 = self.n_records, 0
-        self._f.seek(self.data_start)
         while left > 0:
             k = min(left, self.chunk_records)
             npk = min(left - k, Wrap32.MAX_RUN)
-            buf = self._f.read(8 * (k + npk))
-            self._f.seek(-8 * npk, 1)
+            buf = self._read_records(rec0, k + npk)
             ts = np.frombuffer(buf, ">u4")[1::2].astype(np.int64)
             for kind, j, detail in wrap.feed(ts[:k], ts[k:])[2]:
                 if kind == "reset":
@@ -213,7 +430,7 @@ class Aedat2Reader(RecordingReader):
         bounds = [0] + [r for r, _ in resets] + [self.n_records]
         segs = list(zip(bounds[:-1], bounds[1:]))
         best = max(range(len(segs)), key=lambda i: segs[i][1] - segs[i][0])
-        where = ", ".join(f"byte {self.data_start + 8 * r} (t {a} -> {b} us)" for r, (a, b) in resets)
+        where = ", ".join(f"byte {self._byte(r)} (t {a} -> {b} us)" for r, (a, b) in resets)
         msg = (f"{len(resets)} timestamp reset(s) at {where}: the file holds {len(segs)} segments with separate "
                "clocks")
         if self.strict:
@@ -312,6 +529,7 @@ class Aedat2Reader(RecordingReader):
             self._info = dict(format=self.format, path=self.path, file_size=self.file_size, chip=self.chip or None,
                               layout=self.spec.layout, sensor_size=self._size, header_bytes=self.data_start,
                               records=self.n_records, time_range=(t0, t1), **c,
+                              skipped_bytes=sum(r["skipped"] for r in self.resync),
                               imu_scale={"accel_lsb_per_g": self.accel_lsb_per_g,
                                          "gyro_lsb_per_dps": self.gyro_lsb_per_dps})
             counts = {"events": c["events"], "frames": c["frames"], "imu": c["imu_samples"],
@@ -351,22 +569,20 @@ class Aedat2Reader(RecordingReader):
         else:
             stop = self._rec_hi
         left = stop - rec0
-        self._f.seek(self.data_start + 8 * rec0)
         while left > 0:
             k = min(left, self.chunk_records)
             npk = min(self._rec_hi - rec0 - k, Wrap32.MAX_RUN)
             state = (wrap.prev, wrap.offset, wrap.skip), mono["events"].last
-            buf = self._f.read(8 * (k + npk))
+            buf = self._read_records(rec0, k + npk)
             if len(buf) < 8 * (k + npk):
-                raise AedatError(f"{self.path}: byte {self._f.tell()}: file shrank while reading")
-            self._f.seek(-8 * npk, 1)
+                raise AedatError(f"{self.path}: byte {self._byte(rec0)}: file shrank while reading")
             left -= k
             rec = np.frombuffer(buf, ">u4").reshape(-1, 2)
             t, ok, notes = wrap.feed(rec[:k, 1].astype(np.int64), rec[k:, 1].astype(np.int64))
             for kind, j, detail in notes:
                 if kind == "reset":              # only at the segment's very start (the pass chose the segment)
                     continue
-                at = self.data_start + 8 * (rec0 + j)
+                at = self._byte(rec0 + j)
                 what = (f"{detail} record(s) whose timestamp jumps away by more than 1 s and back (outliers)"
                         if kind == "outlier" else f"timestamp jumping back by {-detail} us (not a plausible wrap)")
                 if self.strict:
@@ -437,7 +653,7 @@ class Aedat2Reader(RecordingReader):
                        "wraps nor resets (left unwrapped)")
         for kind, f in mono.items():
             if f.dropped:
-                self._warn(f"byte {self.data_start + 8 * f.first_bad}: {f.dropped} {kind} going back in time "
+                self._warn(f"byte {self._byte(f.first_bad)}: {f.dropped} {kind} going back in time "
                            "dropped" if f.first_bad is not None else f"{f.dropped} {kind} going back in time dropped")
 
     def _decode_chunk(self, addr, t, idx, mono, frames: bool, fb: FrameBuilder) -> _Chunk:
@@ -462,7 +678,7 @@ class Aedat2Reader(RecordingReader):
             code = addr & 0x3FF
         outside = (dvs | (aps & ~imu)) & ~inside
         if outside.any() and self.strict:
-            raise AedatError(f"{self.path}: byte {self.data_start + 8 * int(idx[np.argmax(outside)])}: "
+            raise AedatError(f"{self.path}: byte {self._byte(int(idx[np.argmax(outside)]))}: "
                              f"x/y outside the {w}x{h} sensor")
         m = dvs & inside
         m[m] = self._ordered(mono["events"], t[m], idx[m], "DVS event")
@@ -491,7 +707,7 @@ class Aedat2Reader(RecordingReader):
         if keep is None:
             return np.ones(len(t), bool)
         if self.strict and not keep.all():
-            raise AedatError(f"{self.path}: byte {self.data_start + 8 * int(idx[np.argmin(keep)])}: {what} "
+            raise AedatError(f"{self.path}: byte {self._byte(int(idx[np.argmin(keep)]))}: {what} "
                              "going back in time")
         return keep
 
