@@ -197,10 +197,13 @@ class Aedat2Reader(RecordingReader):
         d = np.diff(u, prepend=start)
         d = ((d + (1 << 31)) & 0xFFFFFFFF) - (1 << 31)
         tu = start + np.cumsum(d)
-        ok = self._addr_ok(a) & (d >= 0) & (d < self.RESYNC_STEP)
+        addr = self._addr_ok(a)
+        ok = addr & (d >= 0) & (d < self.RESYNC_STEP)
+        if ok.all():             # in order throughout (intact data): the reference is the previous record
+            return ok, tu
         ref = np.maximum.accumulate(np.where(ok, tu, np.iinfo(np.int64).min))
         ref = np.maximum(np.concatenate([[start], ref[:-1]]), start)
-        valid = self._addr_ok(a) & (tu >= ref) & (tu - ref < self.RESYNC_STEP)
+        valid = addr & (tu >= ref) & (tu - ref < self.RESYNC_STEP)
         return valid, tu
 
     def _first_run(self, valid: np.ndarray, run: int) -> int:
@@ -275,8 +278,11 @@ class Aedat2Reader(RecordingReader):
             raw = self._f.read(min(cap, (self.file_size - scan) // 8 * 8))
             rec = np.frombuffer(raw, ">u4").reshape(-1, 2)
             valid, tu = self._valid(rec, anchor)
-            c = np.concatenate([[0], np.cumsum(valid)])
-            low = np.flatnonzero(c[win:] - c[:-win] < self.RESYNC_VALID * win)
+            if valid.all():
+                low = valid[:0]
+            else:
+                c = np.concatenate([[0], np.cumsum(valid)])
+                low = np.flatnonzero(c[win:] - c[:-win] < self.RESYNC_VALID * win)
             if not low.size:
                 if len(rec) >= (self.file_size - scan) // 8:
                     break
