@@ -37,7 +37,7 @@ def random_poses(rng, shape):
 
 def make_scene(rng, n_events=500, n_views=3, samples=2, full=True, w=W, h=H):
     cam = Camera(w, h, K=np.array([[10.0, 0, w / 2], [0, 10.0, h / 2], [0, 0, 1]]),
-                 distortion=rng.normal(size=5), background=(0.0, 0.5, 1.0) if full else None)
+                 distortion=rng.normal(size=5) * 0.02, background=(0.0, 0.5, 1.0) if full else None)
     starts = np.arange(n_views, dtype=np.int64) * 10_000
     exposure = np.stack([starts, starts + 5_000], axis=1)
     pose_t = exposure[:, :1] + np.linspace(0, 5_000, samples).astype(np.int64)[None, :]
