@@ -31,6 +31,19 @@ Reader classes (mutated files read in a child process with a time limit and an a
                     decode: nothing to find). Fails: silent-garbage (validate or train accepted it), slow,
                     bad-message, traceback, hang.
 
+  aedat2-midshift   1-7 bytes inserted or removed at a random offset inside an AEDAT 2.0 file's data (dense,
+                    fixture and a DAVIS240C file with APS frames; a third read with strict=True). Passes:
+                    clean-error (strict must give this), realigned (a warning, every value plausible as for
+                    aedat2-shift, and at most FEW events that the intact file does not have). Fails: silent-garbage
+                    (changed data without a warning), garbage-warned, strict-accepted, traceback, hang.
+  config-hostile    a sensor TOML with one hostile value (1e300, 1e-300, 0, -1, inf, nan, text, ...) in one numeric
+                    key, or a binary / deeply nested / bad-comment file, through `ev3dgs-sim events` and
+                    `ev3dgs-sim compare` (and once `ev3dgs-sim make-dataset`, its render replaced by a trap) in a
+                    child with a time limit and a 6 GiB address-space cap. Passes: refused (exit 2, one `error:`
+                    line), completed (exit 0, the output there, a value inside its range). Fails: reached-render
+                    (make-dataset got past the config), traceback, bad-message (e.g. a numpy overflow warning),
+                    hang (over the limit or out of memory), crash.
+
 Writer class (each command in a child process with a time limit):
   disk-full         every writing command (ev3dgs-sim events / blur, ev3dgs-ingest davis, ev3dgs train, eval,
                     render to .mp4 / .gif / a PNG folder, export .ply, export-dataset in each format, view --out
@@ -85,15 +98,19 @@ ROOT = Path(__file__).resolve().parents[2]
 SHARED = Path("/work/shared/data/aedat/aestream_davis.aedat4")
 KINDS = ("flip", "truncate", "duplicate", "remove", "zero")
 READER_CLASSES = ("aedat2", "aedat3", "aedat4", "scene")
-NEW_CLASSES = ("disk-full", "aedat2-shift", "aedat2-ts-flip", "scene-plausible")
+NEW_CLASSES = ("disk-full", "aedat2-shift", "aedat2-ts-flip", "scene-plausible", "aedat2-midshift",
+               "config-hostile")
 NEW_CLASSES += ("races",)
 ALL_CLASSES = READER_CLASSES + NEW_CLASSES
 DEFAULT_CASES = {"aedat2": 100, "aedat3": 100, "aedat4": 100, "scene": 100, "disk-full": 112,
-                 "aedat2-shift": 84, "aedat2-ts-flip": 84, "scene-plausible": 35}
+                 "aedat2-shift": 84, "aedat2-ts-flip": 84, "scene-plausible": 35, "aedat2-midshift": 84,
+                 "config-hostile": 25}
 PASS = {"aedat2-shift": ("clean-error", "realigned", "ok"),
         "aedat2-ts-flip": ("dropped", "ok", "uncontradicted"),
         "scene-plausible": ("refused", "undetectable"),
-        "disk-full": ("checked-first", "failed-cleanly", "completed")}
+        "disk-full": ("checked-first", "failed-cleanly", "completed"),
+        "aedat2-midshift": ("clean-error", "realigned"),
+        "config-hostile": ("refused", "completed")}
 PASS.update({c: ("clean-error", "warning", "caught", "ok", "uncontradicted") for c in READER_CLASSES})
 SUMMARY = ("cases", "passed", "traceback", "crash", "hang", "corrupt-output", "silent-garbage", "warned-garbage",
            "other-failure")
@@ -390,10 +407,18 @@ def _child_a2(mode: str, path: str, clean: str, spec: str) -> dict:
             return {"class": "traceback", "detail": f"{type(e).__name__}: {e}"[:300]}
     msgs = [str(w.message) for w in caught]
     first = (msgs or [""])[0][:300]
-    if mode == "aedat2-shift":
+    if mode in ("aedat2-shift", "aedat2-midshift"):
         bad = _plausible(got, ref)
         if spec.get("strict"):
             return {"class": "strict-accepted", "detail": (bad or first or "data returned")[:300]}
+        if not bad and mode == "aedat2-midshift":
+            extra = Counter(map(tuple, got["ev"].tolist()))
+            extra.subtract(Counter(map(tuple, ref["ev"].tolist())))
+            n_extra = sum(v for v in extra.values() if v > 0)
+            if n_extra > FEW:
+                bad = f"{n_extra} events that the intact file does not have"
+            elif not msgs:
+                bad = "the data changed without a warning"
         if bad:
             return {"class": "garbage-warned" if msgs else "silent-garbage", "detail": bad[:300]}
         return {"class": "realigned" if msgs else "ok", "detail": first}
@@ -489,7 +514,18 @@ def run_a2_flip(n: int, rng: np.random.Generator, d: Path, files: dict, args) ->
 # ================================================================ commands: helpers shared by the last two classes
 def _cli(mode: str, entry: str, argv: list[str]) -> int:
     """Run one console script in this process (the child of a case); mode 'no-estimate' switches off the
-    commands' up-front free-space check, as when another process fills the disk after it."""
+    commands' up-front free-space check, as when another process fills the disk after it; mode 'no-render'
+    lets make-dataset past its Blender check and makes its render entry exit 99 (reached)."""
+    if mode == "no-render":
+        from ev3dgs.cli import sim as sim_cli
+        from ev3dgs.sim import dataset
+
+        sim_cli.require_blender = lambda command: None
+
+        def trap(*a, **k):
+            os._exit(99)
+
+        dataset.make_dataset = trap
     if mode == "no-estimate":
         from ev3dgs import outputs
 
@@ -1088,6 +1124,119 @@ def _parse_cases(items: list[str] | None) -> tuple[int | None, dict[str, int]]:
     return default, per
 
 
+# ================================================================ issue 53: mid-file AEDAT 2.0 shifts, hostile configs
+def run_a2_midshift(n: int, rng: np.random.Generator, d: Path, files: dict, args) -> list[dict]:
+    _tests_path()
+    from aedat2_build import build as build_davis240
+
+    files = dict(files)
+    if "davis240" not in files:
+        files["davis240"] = d / "davis240.aedat"
+        files["davis240"].write_bytes(build_davis240()[0])
+    names = sorted(files)
+    rows = []
+    for c in range(n):
+        which = names[c % len(names)]
+        data = files[which].read_bytes()
+        start = _a2_data_start(data)
+        at = int(rng.integers(start + 8 * 64, len(data) - 8 * 64))
+        k = int(rng.integers(1, 8))
+        op = "insert" if rng.random() < 0.5 else "remove"
+        strict = bool(rng.random() < 1 / 3)
+        if op == "insert":
+            mutated = data[:at] + rng.integers(0, 256, k, dtype=np.uint8).tobytes() + data[at:]
+        else:
+            mutated = data[:at] + data[at + k:]
+        p = d / f"midshift{c}.aedat"
+        p.write_bytes(mutated)
+        res = _run_child(["aedat2-midshift", str(p), str(files[which]), json.dumps({"strict": strict})],
+                         args.time_limit, args.mem_mb)
+        rows.append({"case": c, "file": which, "mutation": f"{op} {k} bytes at byte {at}", "strict": strict,
+                     "outcome": res.pop("class"), **res})
+        p.unlink()
+    return rows
+
+
+HOSTILE_KEYS = (("dvs", "pos_threshold"), ("dvs", "neg_threshold"), ("dvs", "log_knee"),
+                ("dvs.threshold_mismatch", "sigma"), ("dvs.threshold_mismatch", "min_threshold"),
+                ("dvs.refractory", "period_us"), ("dvs.leak", "rate_hz"), ("dvs.leak", "jitter_fraction"),
+                ("dvs.shot_noise", "rate_hz"), ("dvs.shot_noise", "white_fraction"), ("dvs.lowpass", "cutoff_hz"),
+                ("dvs.lowpass", "dark_intensity"), ("sensor_noise", "iso"), ("aps", "dark_dn"))
+HOSTILE_VALUES = ("1e300", "-1e300", "1e-300", "0", "-1", "1e6", "1e-6", "1e5", "inf", "nan", '"text"', "true",
+                  "[1, 2]")
+HOSTILE_FILES = ("binary", "nested", "comment")
+CONFIG_MEM_MB = 6144          # address space of a config case: numba's compiler and the simulator fit easily
+
+
+def _hostile_config(path: Path, rng: np.random.Generator, out_of_range: bool) -> str:
+    """Write one hostile sensor TOML; returns what it holds."""
+    if not out_of_range and rng.random() < 0.2:
+        kind = HOSTILE_FILES[int(rng.integers(len(HOSTILE_FILES)))]
+        if kind == "binary":
+            path.write_bytes(b"[dvs]\n" + rng.integers(0, 256, 256, dtype=np.uint8).tobytes())
+        elif kind == "nested":
+            path.write_text("x = " + "[" * 10000 + "]" * 10000 + "\n")
+        else:
+            path.write_text(f"# aps_dark_dn = {('-', 'e', '1.2.3', '1e999')[int(rng.integers(4))]}\n[dvs]\n")
+        return kind
+    table, key = HOSTILE_KEYS[int(rng.integers(len(HOSTILE_KEYS)))]
+    values = ("1e300", "-1e300") if out_of_range else HOSTILE_VALUES     # every key is bounded in magnitude
+    value = values[int(rng.integers(len(values)))]
+    path.write_text(f"[{table}]\n{key} = {value}\n")
+    return f"{table}.{key} = {value}"
+
+
+def _config_inputs(d: Path) -> dict:
+    from ev3dgs.calib.synth import Truth, make_recording
+
+    frames = np.linspace(0.1, 0.9, 11, dtype=np.float32)[:, None, None] * np.ones((1, 24, 32), np.float32)
+    np.savez(d / "frames.npz", frames=frames, t_us=np.arange(11, dtype=np.int64) * 100_000)
+    make_recording(d / "small.aedat4", Truth(hot=((3, 5),)), seed=3, seconds=0.6, width=32, height=24, warmup_s=0.2)
+    return {"npz": d / "frames.npz", "rec": d / "small.aedat4"}
+
+
+def run_config_hostile(n: int, rng: np.random.Generator, d: Path, args) -> list[dict]:
+    inputs = _config_inputs(d)
+    rows = []
+    for c in range(n):
+        target = "make-dataset" if c == 0 else ("events" if c % 2 else "compare")
+        cfg = d / f"hostile{c}.toml"
+        what = _hostile_config(cfg, rng, out_of_range=target == "make-dataset")
+        out = d / f"out{c}" / ("s.h5" if target != "compare" else "rep")
+        if target == "events":
+            argv = ["events", inputs["npz"], "--config", cfg, "--out", out, "--quiet"]
+        elif target == "compare":
+            argv = ["compare", inputs["rec"], "--config", cfg, "--out", out, "--quiet"]
+        else:
+            argv = ["make-dataset", "--scene", "lego", "--config", cfg, "--out", out, "--quiet"]
+        t0 = time.perf_counter()
+        try:
+            run = subprocess.run([sys.executable, __file__, "--cli", "no-render" if target == "make-dataset"
+                                  else "plain", "ev3dgs-sim", *map(str, argv)], capture_output=True, text=True,
+                                 timeout=args.cmd_time_limit, cwd=ROOT, env=_env(), stdin=subprocess.DEVNULL,
+                                 preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (CONFIG_MEM_MB << 20,) * 2))
+            rc, err = run.returncode, run.stderr
+        except subprocess.TimeoutExpired:
+            rc, err = None, ""
+        problem, detail = _stderr_problem(err, rc != 0)
+        if rc is None or "MemoryError" in err:
+            outcome, detail = "hang", f"over {args.cmd_time_limit} s" if rc is None else "out of memory"
+        elif rc == 99:
+            outcome, detail = "reached-render", "make-dataset reached its render with this config"
+        elif rc not in (0, 2):
+            outcome, detail = "crash", f"exit {rc}: {err.strip()[-200:]}"
+        elif problem:
+            outcome = problem
+        elif rc == 2:
+            outcome, detail = "refused", err.strip()[:300]
+        else:
+            outcome = "completed" if out.exists() else "silent-garbage"
+            detail = "" if out.exists() else "exit 0 without the output"
+        rows.append({"case": c, "command": target, "mutation": what, "outcome": outcome, "detail": detail,
+                     "seconds": round(time.perf_counter() - t0, 2)})
+    return rows
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["--cli"]:
@@ -1107,7 +1256,7 @@ def main(argv=None) -> int:
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        if args.child[0] in ("aedat2-shift", "aedat2-ts-flip"):
+        if args.child[0] in ("aedat2-shift", "aedat2-ts-flip", "aedat2-midshift"):
             print(json.dumps(_child_a2(*args.child)))
         else:
             print(json.dumps(_child(*args.child)))
@@ -1141,6 +1290,11 @@ def main(argv=None) -> int:
             elif cls in ("aedat2-shift", "aedat2-ts-flip"):
                 a2 = a2 or a2_files(d)
                 rows = (run_a2_shift if cls == "aedat2-shift" else run_a2_flip)(n, rng, d, a2, args)
+            elif cls == "aedat2-midshift":
+                a2 = a2 or a2_files(d)
+                rows = run_a2_midshift(n, rng, d, a2, args)
+            elif cls == "config-hostile":
+                rows = run_config_hostile(n, rng, d, args)
             elif cls == "disk-full":
                 rows, meta = run_disk_full(n, rng, d, args, only, cache)
                 notes[cls] = meta
