@@ -13,7 +13,6 @@ import pytest
 from ev3dgs.calib.synth import Truth, make_recording
 from ev3dgs.cli import sim as sim_cli
 from ev3dgs.errors import ConfigError
-from ev3dgs.sensor import RANGES
 from ev3dgs.sim.config import load_sim_config
 
 
@@ -85,6 +84,8 @@ def test_every_numeric_key_has_a_physical_range(tmp_path, table, key, value):
 
 def test_range_ends_load(tmp_path):
     """The stated ends are inside: the ranges refuse nothing a sensor can have."""
+    from ev3dgs.sensor import RANGES
+
     lo_t, hi_t = RANGES["threshold"]
     lo_k, hi_k = RANGES["intensity"]
     p = tmp_path / "ends.toml"
