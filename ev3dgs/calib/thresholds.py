@@ -504,8 +504,9 @@ def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int) -> tup
         if not np.isfinite(sig) or used[i] == 0:
             vals.append(Value(None, None, f"no pixel has two {pol} frame pairs at least two pairs apart"))
         elif sig <= 0 or (s_se is not None and s_se > sig):
-            vals.append(Value(None, s_se, f"{sig:.3g} +- {s_se:.2g} from {used[i]} pixels: the standard error "
-                                          "exceeds the value"))
+            se_text = "" if s_se is None else f" +- {s_se:.2g}"
+            why = "no spread beyond the counting noise" if sig <= 0 else "the standard error exceeds the value"
+            vals.append(Value(None, s_se, f"{sig:.3g}{se_text} from {used[i]} pixels: {why}"))
         else:
             vals.append(Value(float(sig), s_se, f"{used[i]} pixels, products of frame pairs two or more apart"))
     return (vals[0], vals[1], Value(full[0][0], float(se[0])), Value(full[1][0], float(se[2])))
