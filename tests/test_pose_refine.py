@@ -343,7 +343,7 @@ def test_runs_saved_before_pose_frame_are_world_frame_runs(scene, tmp_path):
     _refiner().load_state_dict(state)
     with pytest.raises(InputError, match="frame"):
         _refiner(frame="camera").load_state_dict(state)
-    with pytest.raises(Exception, match="pose-frame"):
+    with pytest.raises(Exception, match="poses.frame"):
         TrainConfig(scene=scene, pose_frame="body")
 
 
