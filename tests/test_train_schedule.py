@@ -242,8 +242,10 @@ def _linear_to_srgb(v):
 
 @pytest.mark.parametrize("space", ["linear", "srgb"])
 def test_logged_psnr_blurry_averages_in_the_blur_space(scene, tmp_path, monkeypatch, space):
+    import ev3dgs.train.terms.blur as B   # the blur term averages the renders and scores them
+
     seen = {}
-    real_avg, real_loss = T.blur_average, T.average_loss
+    real_avg, real_loss = B.blur_average, B.average_loss
 
     def spy_avg(renders, sp, **kw):                 # the sub-pose renders and the blur space the step averages in
         seen.update(renders=renders.detach().double().numpy(), space=sp)
@@ -253,17 +255,18 @@ def test_logged_psnr_blurry_averages_in_the_blur_space(scene, tmp_path, monkeypa
         seen.update(target=target.double().numpy())
         return real_loss(avg, target, lam, **kw)
 
-    monkeypatch.setattr(T, "blur_average", spy_avg)
-    monkeypatch.setattr(T, "average_loss", spy_loss)
+    monkeypatch.setattr(B, "blur_average", spy_avg)
+    monkeypatch.setattr(B, "average_loss", spy_loss)
     tr = Trainer(_cfg(scene, blur_space=space), tmp_path / space, quiet=True)
     real_render = tr.render
 
     calls = []
 
-    def contrasty(viewmat):  # the reference backend renders one sub-pose a call: the k-th as a flat grey
-        img, alpha, info = real_render(viewmat)  # k / 4 (plus a sliver of the real render, so gradients flow):
+    def contrasty(viewmat):  # the step renders its sub-poses in one call: the k-th as a flat grey k / 4
+        img, alpha, info = real_render(viewmat)  # (plus a sliver of the real render, so gradients flow):
         calls.append(1)                          # the linear and the plain average then differ widely
-        return 0.01 * img + 0.99 * (len(calls) - 1) / 4.0, alpha, info
+        grey = torch.arange(img.shape[0], dtype=img.dtype).view(-1, 1, 1, 1) / 4.0
+        return 0.01 * img + 0.99 * grey, alpha, info
 
     tr.render = contrasty
     rec = tr.train_step()
@@ -282,8 +285,10 @@ def test_logged_psnr_blurry_averages_in_the_blur_space(scene, tmp_path, monkeypa
 # ----------------------------------------------------------------------------------------------- (e) guard
 @pytest.mark.parametrize("norm", ["noise", "count"])
 def test_nan_in_a_learned_threshold_gradient_stops_training(scene, tmp_path, monkeypatch, norm):
+    import ev3dgs.train.terms.events as E   # the event term's losses
+
     name = "noise_event_loss" if norm == "noise" else "pose_event_loss"
-    real = getattr(T, name)
+    real = getattr(E, name)
 
     def poisoned(log_l, counts, pairs, th_pos, *args):
         # value + 0: the loss stays finite; d sqrt(x)/dx at 0 is inf, times 0 -> NaN in theta_on's gradient only
@@ -291,7 +296,7 @@ def test_nan_in_a_learned_threshold_gradient_stops_training(scene, tmp_path, mon
         nan_grad = 0.0 * torch.sqrt(th_pos - th_pos.detach())
         return (out[0] + nan_grad, *out[1:]) if isinstance(out, tuple) else out + nan_grad
 
-    monkeypatch.setattr(T, name, poisoned)
+    monkeypatch.setattr(E, name, poisoned)
     tr = Trainer(_cfg(scene, learn_thresholds=True, event_norm=norm), tmp_path / "run", quiet=True)
     assert any(p is tr.thresholds["pos"] for p in tr.trained_parameters())
     with pytest.raises(TrainingError, match="non-finite loss or gradient at step 1"):
@@ -337,5 +342,5 @@ def test_checkpoint_from_the_shared_stream_era_is_refused(scene, tmp_path):
     payload["rng"] = payload["rng"]["views"]  # the old layout: one ByteTensor
     torch.save(payload, run / "ckpt.pt")
     with pytest.raises(InputError, match="one shared random stream"):
-        Trainer(_cfg(scene, iterations=3, naive=True, init_points=50, checkpoint_every=1), run,
+        Trainer(_cfg(scene, iterations=3, naive=True, init_points=50, checkpoint_every=1, schedule_length=2), run,
                 quiet=True).fit(resume=True)
