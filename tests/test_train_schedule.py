@@ -59,7 +59,7 @@ def test_schedule_is_well_formed(n):
 
 
 def test_trainer_uses_the_scaled_schedule(scene, tmp_path):
-    """The scaled schedule, with short runs' floors: densification from step 50 at the earliest, an opacity
+    """The scaled schedule, with short runs' floors: densification from step 15 at the earliest, an opacity
     reset at most every 100 steps (issue 52 item 7); 3000 steps and more are the scaled 3DGS schedule."""
     for n in (600, 3000, 30_000):
         s = Trainer(_cfg(scene, iterations=n), tmp_path / str(n), quiet=True).strategy
@@ -101,9 +101,16 @@ def test_600_step_run_resets_and_prunes_oversized_at_the_scaled_steps():
     assert pruned_at == {70: 3}
 
 
+def test_runs_of_1000_steps_and_more_keep_the_scaled_schedule():
+    """The floors only touch short runs: the docs' tables were trained for 1000-1500 steps and stand."""
+    for n in (1000, 1500, 3000, 30_000):
+        assert T.densify_schedule(n) == scaled_schedule(n)
+    assert T.densify_schedule(400) != scaled_schedule(400)
+
+
 def test_short_training_neither_densifies_nor_resets_before_the_scene_has_a_first_fit(scene, tmp_path):
     """A real 40-step run: schedule(40) alone would refine every 10 from step 1 to 20 and reset the opacities
-    at step 10; with the short-run floors (refine from step 50, reset at most every 100) nothing happens."""
+    at step 10; with the short-run floors (refine from step 15, reset at most every 100) nothing happens."""
     assert scaled_schedule(40) == {"refine_start": 1, "refine_stop": 20, "refine_every": 10, "reset_every": 10}
     # naive (one render a step) and few Gaussians: the schedule is what is tested, not the fit
     tr = Trainer(_cfg(scene, iterations=40, naive=True, init_points=100), tmp_path / "run", quiet=True)
