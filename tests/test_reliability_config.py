@@ -62,6 +62,23 @@ def test_bad_config_fails_make_dataset_before_blender(tmp_path, capsys, monkeypa
     assert calls == [] and not (tmp_path / "d.h5").exists()
 
 
+def test_noise_that_would_not_fit_in_memory_fails_make_dataset_before_blender(tmp_path, capsys, monkeypatch):
+    """The noise effects' events over every exposure are estimated before the render: a dataset whose noise
+    would not fit is refused in one line, and Blender's render entry is never reached."""
+    import ev3dgs.sim.dataset as dataset
+
+    calls = []
+    monkeypatch.setattr(sim_cli, "require_blender", lambda command: None)
+    monkeypatch.setattr(dataset, "render_all", lambda *a, **k: calls.append(a))
+    monkeypatch.setenv("EV3DGS_MAX_MEMORY", "1M")
+    noisy = tmp_path / "noisy.toml"
+    noisy.write_text("[dvs.shot_noise]\nrate_hz = 1000\n")   # in range: 1e3 Hz x 6912 px x 1 s x 48 B > 1 MiB
+    assert sim_cli.main(["make-dataset", "--scene", "lego", "--quick", "--config", str(noisy), "--out",
+                         str(tmp_path / "d.h5")]) == 2
+    one_line_error(capsys, "would make about")
+    assert calls == [] and not (tmp_path / "d.h5").exists()
+
+
 # ------------------------------------------------------------------ item 6: a physical range per key
 HOSTILE = [("dvs", "pos_threshold", 1e-300), ("dvs", "pos_threshold", 1e-6), ("dvs", "neg_threshold", 1e300),
            ("dvs", "log_knee", 1e-300), ("dvs.threshold_mismatch", "min_threshold", 1e-300),

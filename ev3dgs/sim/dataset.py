@@ -26,6 +26,7 @@ from ..events import Events
 from ..geometry import intrinsics
 from ..outputs import OutputError, atomic_path, check_output_file, os_error_message, remove_stale_temps
 from .blur import blur_frames
+from .budget import check_noise_memory
 from .dvs import DVSSimulator
 from .isp import forward_isp, inverse_isp
 from .output import event_sensor, provenance
@@ -182,8 +183,10 @@ def make_dataset(spec: SceneSpec, render: Render, out: str | Path, blend: str | 
             for p in plans}
     jobs.update({f"test_{j:04d}": pose[None] for j, pose in enumerate(novel_view_poses(render, seed))})
     cache = out.parent / f".{out.stem}.cache-{_cache_key(spec, render, blend, seed)}"
-    # before any rendering: the output can be written, with room for the cache and the file
+    # before any rendering: the output can be written, with room for the cache and the file, and the noise
+    # effects' events over every exposure fit in memory (the simulator checks again per view)
     check_output_file(out, _estimate_bytes(render, cache), force=force, make_parents=True)
+    check_noise_memory(spec.sensor.dvs, W * H, sum(int(p.t_us[-1] - p.t_us[0]) for p in plans) * 1e-6)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)   # a missing output folder is made, as every command does
     except OSError as e:
