@@ -8,6 +8,7 @@ defaults". Validation of value ranges lives in each dataclass's `__post_init__`.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import tomllib
 import types
@@ -135,3 +136,26 @@ def check(cond: bool, message: str) -> None:
     """Range checks in `__post_init__`."""
     if not cond:
         raise ConfigError(message)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dumps_toml(d: dict, prefix: str = "") -> str:
+    """A plain nested dict (ev3dgs.config.to_dict) as TOML: scalars first, then one table per sub-dict."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+    for k, v in d.items():
+        if isinstance(v, dict):
+            name = f"{prefix}{k}"
+            body = dumps_toml(v, name + ".")
+            lines += ["", f"[{name}]", body] if body else ["", f"[{name}]"]
+    return "\n".join(lines)

@@ -41,36 +41,11 @@ def with_sensor_config(spec, config_path):
         spec.sensor, **{k: getattr(cfg, k) for k in ("dvs", "isp", "sensor_noise") if k in given}))
 
 
-def _toml_value(v) -> str:
-    import json
-
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(float(v)) if isinstance(v, float) else str(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def _toml(d: dict, prefix: str = "") -> str:
-    """A plain nested dict (ev3dgs.config.to_dict) as TOML: scalars first, then one table per sub-dict."""
-    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
-    for k, v in d.items():
-        if isinstance(v, dict):
-            name = f"{prefix}{k}"
-            body = _toml(v, name + ".")
-            lines += ["", f"[{name}]", body] if body else ["", f"[{name}]"]
-    return "\n".join(lines)
-
-
 def scene_toml(spec) -> str:
     """A SceneSpec as a scene TOML that load_scene reads back to the same spec."""
-    from ..config import to_dict
+    from ..config import dumps_toml, to_dict
 
-    return _toml(to_dict(spec)) + "\n"
+    return dumps_toml(to_dict(spec)) + "\n"
 
 
 def _events(args) -> int:

@@ -121,11 +121,10 @@ def sensor_toml(sensor) -> str:
     """The simulated sensor (a SimConfig: [dvs] with its effect tables, [isp], [sensor_noise]) as a TOML that
     load_sim_config, `--config` and `ev3dgs-ingest davis --sensor` read back to the same settings. AEDAT 4
     has no field for it, so it goes beside the recording: the ground truth a calibration is held against."""
-    from ..cli.sim import _toml
-    from ..config import to_dict
+    from ..config import dumps_toml, to_dict
 
     return ("# the sensor ev3dgs-sim record simulated (ground truth; AEDAT 4 stores no sensor model)\n"
-            + _toml(to_dict(sensor)) + "\n")
+            + dumps_toml(to_dict(sensor)) + "\n")
 
 
 def check_outputs(out, force: bool = True) -> None:
