@@ -40,11 +40,12 @@ def measure(run: Path, steps: int) -> dict:
     import torch
 
     import ev3dgs.train.losses as losses
+    import ev3dgs.train.terms.events as events_term
     import ev3dgs.train.trainer as trainer_module
     from ev3dgs.train.config import TrainConfig
 
     seen = []
-    real = trainer_module.noise_event_loss
+    real = events_term.noise_event_loss   # the event term's call (train/terms/events.py)
 
     def spy(log_l, counts, pairs, theta_pos, theta_neg, convention, rel, noise, floor, knee, spread=None, *rest):
         with torch.no_grad():   # rest: the floor statistic and penalty, passed on as the trainer gave them
@@ -53,16 +54,17 @@ def measure(run: Path, steps: int) -> dict:
             seen.append(tail_summary((r * r - v) / g))
         return real(log_l, counts, pairs, theta_pos, theta_neg, convention, rel, noise, floor, knee, spread, *rest)
 
-    trainer_module.noise_event_loss = spy
+    events_term.noise_event_loss = spy
     try:
         with tempfile.TemporaryDirectory() as tmp:
             copy = Path(tmp) / run.name
             shutil.copytree(run, copy)
             cfg = TrainConfig.load(copy / "config.json")
             done = json.loads((copy / "log.jsonl").read_text().splitlines()[-1])["step"]
-            trainer_module.Trainer(replace(cfg, iterations=done + steps), copy, quiet=True).fit(resume=True)
+            trainer_module.Trainer(replace(cfg, iterations=done + steps, schedule_length=cfg.schedule_iterations),
+                                   copy, quiet=True).fit(resume=True)   # more steps on the run's schedules
     finally:
-        trainer_module.noise_event_loss = real
+        events_term.noise_event_loss = real
     return {k: sorted(s[k] for s in seen)[len(seen) // 2] for k in seen[0]} | {"steps": len(seen)}
 
 
