@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from aedat2_build import aps, dvs, imu_word   # the jAER DAVIS address encoders
 
 from ev3dgs.io.jaer.aedat2 import Aedat2Reader
 from ev3dgs.io.jaer.aedat3 import Aedat3Reader
@@ -27,18 +28,6 @@ def header(chip: bytes | None = b"eu.seebetter.ini.chips.davis.DAVIS240C", prefs
     if chip:
         h += b"# AEChip: " + chip + b"\r\n"
     return h + prefs + b"#End Of ASCII Header\r\n"
-
-
-def dvs(x, y, p):
-    return (y << 22) | (x << 12) | (p << 11)
-
-
-def aps(x, y, readout, adc):
-    return (1 << 31) | (y << 22) | (x << 12) | (readout << 10) | adc
-
-
-def imu_word(kind, value):
-    return (1 << 31) | (kind << 28) | ((int(value) & 0xFFFF) << 12) | (3 << 10)
 
 
 def body(recs) -> bytes:
