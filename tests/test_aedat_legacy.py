@@ -17,6 +17,8 @@ from ev3dgs.io.jaer.aedat2 import Aedat2Reader
 from ev3dgs.io.jaer.aedat3 import Aedat3Reader
 from ev3dgs.io.types import AedatError
 
+from aedat2_build import aps as a2_aps, dvs as a2_dvs, imu_word as a2_imu  # the jAER DAVIS address encoders
+
 W, H = 346, 260
 AEDAT4_SAMPLE = Path(__file__).resolve().parents[2] / "shared/data/aedat/aestream_davis.aedat4"
 
@@ -26,18 +28,6 @@ A2_HEADER = (b"#!AER-DAT2.0\r\n# This is a raw AE data file created by AEOutputS
              b"#      <entry key=\"ImuAccelScale\" value=\"ImuAccelScaleG8\"/>\r\n"
              b"#      <entry key=\"ImuGyroScale\" value=\"GyroFullScaleDegPerSec1000\"/>\r\n"
              b"#End Of ASCII Header\r\n")
-
-
-def a2_dvs(x, y, p):
-    return (y << 22) | (x << 12) | (p << 11)
-
-
-def a2_aps(x, y, readout, adc):
-    return (1 << 31) | (y << 22) | (x << 12) | (readout << 10) | adc
-
-
-def a2_imu(kind, value):
-    return (1 << 31) | (kind << 28) | ((value & 0xFFFF) << 12) | (3 << 10)
 
 
 def build_aedat2(seed=0, roi=True):
