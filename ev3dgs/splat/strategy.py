@@ -144,7 +144,7 @@ class DefaultStrategy:
         n = state["count"].shape[0]
         w, h = float(info["width"]), float(info["height"])
         g = grad.detach().reshape(-1, n, 2).to(state["grad2d"])
-        g = g * torch.tensor([w / 2.0, h / 2.0], dtype=g.dtype, device=g.device)
+        g = g * self._ndc_scale(w, h, g.dtype, g.device)
         g = g * float(info.get("grad_scale", 1.0))
         radii = info["radii"].detach()
         if radii.shape[-1] == 2 and radii.dim() >= 2 and radii.numel() == 2 * n * g.shape[0]:
@@ -284,6 +284,14 @@ class DefaultStrategy:
             lambda name, key, v: torch.zeros_like(v),
             names=["opacity_logits"],
         )
+
+    def _ndc_scale(self, w: float, h: float, dtype, device) -> Tensor:
+        """(W/2, H/2) on the device, made once per size (a copy to the device at every step would wait for it)."""
+        key = (w, h, dtype, device)
+        cache = self.__dict__.setdefault("_scales", {})
+        if key not in cache:
+            cache[key] = torch.tensor([w / 2.0, h / 2.0], dtype=dtype).to(device)
+        return cache[key]
 
     def _generator(self) -> torch.Generator | None:
         if self.seed is None:

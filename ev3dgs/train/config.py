@@ -14,7 +14,9 @@ from ..errors import ConfigError
 # Extending a run (--iterations on --resume) keeps every schedule as the run started it: schedule_length
 # records the length the schedules were made for (learning-rate decays, densification, EDI anneal, pose
 # learning rate), and the steps past it run at the schedules' final values (docs/trainer.md, "Resuming").
-RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads")
+RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "threads", "readback_every")
+# readback_every "auto" (None) per device type the run trains on
+READBACK_DEFAULT = {"cpu": 1, "cuda": 100}
 # keys added after runs were saved without them, with the value those runs used (not today's default)
 LEGACY_VALUES = {"pose_frame": "world", "event_norm": "count", "frame_noise": 0.0, "map_weights": "posterior",
                  "event_floor": "mean", "event_huber": 0.0, "densify_from": "all"}
@@ -123,6 +125,10 @@ class TrainConfig:
     init_opacity: float = 0.1
     densify: bool = True
     checkpoint_every: int = 500
+    readback_every: int | None = None  # read the steps' log values and non-finite guard back from the device
+                                      # every this many steps (and at every checkpoint), not at every step
+                                      # (readback.py); None = READBACK_DEFAULT[device]: 1 on the CPU, where a
+                                      # read costs nothing, 100 on CUDA, where each read stalls the queue
     seed: int = 0
     device: str = "auto"
     threads: int | None = None
@@ -199,6 +205,7 @@ class TrainConfig:
         check(0 < self.init_opacity < 1, "init opacity must be in (0, 1)")
         check(self.seed >= 0, "--seed must be >= 0")
         check(self.checkpoint_every >= 1, "--checkpoint-every must be >= 1")
+        check(self.readback_every is None or self.readback_every >= 1, "readback_every must be >= 1")
         check(self.device in ("auto", "cpu", "cuda"), "--device must be auto, cpu or cuda")
         check(self.threads is None or self.threads >= 1, "--threads must be >= 1")
         check(self.backend in ("auto", "reference", "cpu", "cuda"), "--backend must be auto, reference, cpu or cuda")

@@ -102,8 +102,8 @@ def edi_prior_loss(log_l: torch.Tensor, counts: torch.Tensor, log_b: torch.Tenso
     from the detached counts and blurry frame, V = edi_variance, g_k = 1 / I_k^2 at the rendered intensity
     (detached, clamped to [knee, 1]), as noise_event_loss. (K, H, W) log_l, (K, 2, H, W) cumulative counts, (H, W)
     log_b and mask. Finite for any finite input: every denominator is at least floor > 0."""
-    if not (floor > 0 and math.isfinite(floor)):
-        raise ValueError(f"floor must be finite and > 0, got {floor!r}")
+    if not torch.is_tensor(floor) and not (floor > 0 and math.isfinite(floor)):   # (a device floor: the
+        raise ValueError(f"floor must be finite and > 0, got {floor!r}")        # trainer's, >= FLOOR_MIN)
     with torch.no_grad():
         c = counts.to(log_l.dtype)
         tp = torch.as_tensor(theta_pos, dtype=log_l.dtype, device=log_l.device)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 W_MIN = 1.0 / 16.0   # the blur term keeps at least this share: the event weight grows at most 16-fold
 MSE_MOMENTUM = 0.9   # exponential average of the blur term's squared error over steps (as losses.update_floor)
@@ -70,13 +71,23 @@ def estimate_noise(frames: np.ndarray, step: float | None = None) -> float:
 def blur_weight(noise_var: float, mse: float | None) -> float:
     """The blur term's weight w (module doc) for frames of noise variance ``noise_var`` at a tracked squared
     error ``mse`` (None, before the first step: 1)."""
-    if noise_var <= 0 or mse is None or not math.isfinite(mse) or mse <= 0:
+    if noise_var <= 0 or mse is None:
+        return 1.0
+    if torch.is_tensor(mse):   # the trainer's tracked error on the device (0-dim float64): nothing read back
+        w = (1.0 - torch.div(torch.full_like(mse, noise_var), mse)).clamp(W_MIN, 1.0)   # (not noise_var / mse:
+        return torch.where(torch.isfinite(mse) & (mse > 0), w, 1.0)                     # mse^-1 * noise_var)
+    if not math.isfinite(mse) or mse <= 0:
         return 1.0
     return min(1.0, max(W_MIN, 1.0 - noise_var / mse))
 
 
 def update_mse(tracked: float | None, mse: float) -> float | None:
     """``mse`` (one step's) as an exponential average over steps; a non-finite step leaves it as it was."""
+    if torch.is_tensor(mse):   # on the device (0-dim float64): the same IEEE operations, nothing read back
+        if tracked is None:
+            return mse
+        avg = MSE_MOMENTUM * tracked + (1.0 - MSE_MOMENTUM) * mse
+        return torch.where(torch.isfinite(mse), avg, tracked)
     if not math.isfinite(mse):
         return tracked
     return mse if tracked is None else MSE_MOMENTUM * tracked + (1.0 - MSE_MOMENTUM) * mse

@@ -27,8 +27,8 @@ from ..errors import ConfigError
 # (table, key) -> TrainConfig field; table "" is the top level (the core)
 LAYOUT: dict[str, dict[str, str]] = {
     "": {k: k for k in ("scene", "iterations", "seed", "backend", "device", "threads", "checkpoint_every",
-                        "naive", "oracle", "sh_degree", "sh_interval", "init_points", "init_opacity",
-                        "schedule_length")},
+                        "readback_every", "naive", "oracle", "sh_degree", "sh_interval", "init_points",
+                        "init_opacity", "schedule_length")},
     "blur": {"subposes": "subposes", "subpose_px": "subpose_px", "space": "blur_space",
              "ssim_lambda": "ssim_lambda"},
     "densify": {"enabled": "densify", "from": "densify_from"},

@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from ..logmap import DEFAULT_LOG_KNEE, safe_log_torch
 from ..sensor import LUMINANCE_WEIGHTS, cfa_channels
 from .config import FLOOR_STATS
+from .readback import to_device
 
 _BAYER = {"RGGB", "BGGR", "GRBG", "GBRG"}
 _SRGB_KNEE = 0.04045
@@ -65,6 +66,12 @@ def linear_to_srgb_torch(x: torch.Tensor) -> torch.Tensor:
     low = x * 12.92
     high = 1.055 * torch.clamp(x, min=_LINEAR_KNEE) ** (1.0 / 2.4) - 0.055
     return torch.where(x <= _LINEAR_KNEE, low, high)
+
+
+@functools.lru_cache(maxsize=16)
+def _weights(values: tuple, dtype, device) -> torch.Tensor:
+    """A constant vector on the device, made once (a host-to-device copy per step would wait for the device)."""
+    return torch.as_tensor(values, dtype=dtype).to(device)
 
 
 @functools.lru_cache(maxsize=16)
@@ -181,8 +188,7 @@ def log_intensity(renders: torch.Tensor, color_filter: str = "none", knee: float
         lin = renders
     cf = (color_filter or "none")
     if cf.lower() == "none":
-        w = torch.as_tensor(LUMA_601 if transfer == "display" else LUMINANCE_WEIGHTS, dtype=lin.dtype,
-                            device=lin.device)
+        w = _weights(tuple(LUMA_601 if transfer == "display" else LUMINANCE_WEIGHTS), lin.dtype, lin.device)
         inten = (lin * w).sum(dim=-1)
     elif cf.upper() in _BAYER:
         _, h, wd, _ = lin.shape
@@ -278,7 +284,7 @@ def _check_event_shapes(log_l: torch.Tensor, counts: torch.Tensor) -> None:
 def _pair_residuals(log_l, counts, pairs, tp, tn, convention) -> tuple[torch.Tensor, torch.Tensor]:
     """(P, H, W) residuals (log_l[k2] - log_l[k1]) - (E_k2 - E_k1) for the pairs, and the (P, 2) pair index."""
     d = log_l - expected_log_change(counts.to(log_l.dtype), tp, tn, convention)
-    idx = torch.as_tensor([tuple(pr) for pr in pairs], dtype=torch.long, device=log_l.device)
+    idx = to_device([tuple(pr) for pr in pairs], torch.long, log_l.device)   # (drawn on the host)
     # index_select, not d[idx]: the backward of advanced indexing with repeated indices (every pose is in
     # several pairs) is index_put_(accumulate=True), whose multi-threaded CPU kernel adds in a racy order;
     # index_select's backward (index_add_) adds slice by slice in index order: bitwise reproducible
@@ -419,7 +425,7 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
                      noise_events: torch.Tensor | None = None, floor: float | None = None,
                      knee: float | None = DEFAULT_LOG_KNEE,
                      spread: torch.Tensor | None = None, floor_stat: str = "mean",
-                     huber_c: float = 0.0) -> tuple[torch.Tensor, float]:
+                     huber_c: float = 0.0, device_floor: bool = False) -> tuple[torch.Tensor, float]:
     """The event loss weighted by a noise model of the counts: mean over pairs and pixels of
 
         r^2 / (v + floor * g),   r = (log_l[k2] - log_l[k1]) - (E_k2 - E_k1)   (log units, as pose_event_loss)
@@ -442,7 +448,12 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
     theirs; the median is the error of a typical pixel-pair. "chi2": the floor at which the penalised
     chi-square averages what the noise model says it should (:func:`chi2_floor`). ``huber_c`` > 0: each
     r^2 / (v + floor g) through :func:`huber`, so the pixel-pairs beyond huber_c standard deviations, which a
-    lower floor weighs more, pull as |r|."""
+    lower floor weighs more, pull as |r|.
+
+    A ``floor`` given as a 0-dim float64 tensor (or ``device_floor`` with floor None), floor_stat "mean" or
+    "median": the estimate is such a tensor too and nothing is read back to the host (the trainer's step on a
+    GPU); the values are those of the float path (the float32 statistic widened exactly, the floor cast to
+    float32 where it meets the float32 arrays, as a Python float is). "chi2" solves on the host (chi2_floor)."""
     _check_event_shapes(log_l, counts)
     if floor_stat not in FLOOR_STATS:
         raise ValueError(f"floor_stat must be one of {', '.join(FLOOR_STATS)}, got {floor_stat!r}")
@@ -450,11 +461,15 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
         raise ValueError(f"huber_c must be finite and >= 0, got {huber_c!r}")
     if not (rel_mismatch >= 0 and math.isfinite(rel_mismatch)):
         raise ValueError(f"rel_mismatch must be finite and >= 0, got {rel_mismatch!r}")
-    if floor is not None and not (floor > 0 and math.isfinite(floor)):
+    on_device = torch.is_tensor(floor) or (floor is None and device_floor)
+    if floor is not None and not torch.is_tensor(floor) and not (floor > 0 and math.isfinite(floor)):
         raise ValueError(f"floor must be finite and > 0, got {floor!r}")
+    if on_device and floor_stat == "chi2":
+        raise ValueError("a floor on the device needs floor_stat mean or median (chi2 is solved on the host)")
     tp, tn = _thetas(theta_pos, theta_neg, log_l)
     if len(pairs) == 0:
-        return log_l.sum() * 0.0, FLOOR_MIN
+        return log_l.sum() * 0.0, (torch.full((), FLOOR_MIN, dtype=torch.float64, device=log_l.device)
+                                   if on_device else FLOOR_MIN)
     residual, v, g = noise_terms(log_l, counts, pairs, tp, tn, convention, rel_mismatch, noise_events, knee,
                                  spread)
     with torch.no_grad():
@@ -463,8 +478,12 @@ def noise_event_loss(log_l: torch.Tensor, counts: torch.Tensor, pairs: Sequence[
             estimate = chi2_floor(r2, v, g, huber_c, floor)
         else:
             excess = (r2 - v) / g
-            estimate = float(torch.median(excess) if floor_stat == "median" else torch.mean(excess))
-    if floor is None:
+            estimate = torch.median(excess) if floor_stat == "median" else torch.mean(excess)
+            # a float32 value widened to float64 (exact): the number float() gives, left on the device
+            estimate = estimate.to(torch.float64) if on_device else float(estimate)
+    if floor is None and on_device:
+        floor = torch.where(torch.isfinite(estimate), estimate.clamp_min(FLOOR_MIN), FLOOR_MIN)
+    elif floor is None:
         floor = max(estimate, FLOOR_MIN) if math.isfinite(estimate) else FLOOR_MIN
     loss = torch.mean(huber(residual * residual / (v + floor * g), huber_c))
     return loss, estimate
@@ -474,7 +493,17 @@ def update_floor(floor: float | None, estimate: float) -> float:
     """The model's squared error beyond the counts' own noise (noise_event_loss's estimate of one step) as an
     exponential average over steps (None: the first step's value), never below FLOOR_MIN. Early in training
     the rendering is far from the counts, the floor is large and the event term weighs little; it tightens
-    as the model fits. A non-finite estimate (a step the trainer's NaN guard stops) leaves the floor as it was."""
+    as the model fits. A non-finite estimate (a step the trainer's NaN guard stops) leaves the floor as it was.
+    A tensor ``estimate`` (0-dim float64, noise_event_loss on the device): the same arithmetic in float64 tensor
+    operations, one IEEE operation each as in Python, so the same bits, and nothing read back."""
+    if torch.is_tensor(estimate):
+        e = estimate.clamp_min(FLOOR_MIN)
+        if floor is None:
+            return torch.where(torch.isfinite(estimate), e, FLOOR_MIN)
+        if not torch.is_tensor(floor):   # (a float floor from an older checkpoint: made once)
+            floor = torch.as_tensor(floor, dtype=torch.float64, device=estimate.device)
+        new = (FLOOR_MOMENTUM * floor + (1.0 - FLOOR_MOMENTUM) * e).clamp_min(FLOOR_MIN)
+        return torch.where(torch.isfinite(estimate), new, floor)
     if not math.isfinite(estimate):
         return FLOOR_MIN if floor is None else floor
     estimate = max(estimate, FLOOR_MIN)

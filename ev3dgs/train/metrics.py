@@ -30,6 +30,22 @@ def psnr(a, b) -> float:
     return 10.0 * math.log10(1.0 / mse)
 
 
+def psnr_later(a: torch.Tensor, b: torch.Tensor):
+    """:func:`psnr` of two [0,1] float tensors without reading anything back: the float64 MSE stays on their
+    device and the PSNR is computed from it when read back (readback.Later). The same formula; the MSE's sum
+    may round differently from NumPy's in the last bits."""
+    from .readback import Later
+
+    if a.shape != b.shape:
+        raise ValueError(f"psnr needs equal shapes, got {tuple(a.shape)} and {tuple(b.shape)}")
+    mse = torch.mean((a.detach().to(torch.float64) - b.detach().to(torch.float64)) ** 2)
+    return Later(mse, _psnr_from_mse)
+
+
+def _psnr_from_mse(mse: float) -> float:
+    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+
+
 def ssim_metric(a, b) -> float:
     """Mean SSIM of two (H, W, C) or (H, W) images as a float, computed in float64 with ``losses.ssim``."""
     x = torch.from_numpy(np.ascontiguousarray(_as_float64(a)))

@@ -37,9 +37,10 @@ from ..splat.model import GaussianModel
 from ..splat.rasterize import rasterization
 from ..splat.strategy import DefaultStrategy, scaled_schedule
 from .checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
-from .config import TrainConfig
+from .config import READBACK_DEFAULT, TrainConfig
 from .data import TrainData, load_train_data
 from .init import init_bounds
+from .readback import read_back, to_device
 from .rng import stream_generator, stream_seed
 
 
@@ -133,7 +134,7 @@ class Step:
         idx = self._index[term]
         if idx == list(range(len(self.renders))):
             return self.renders
-        return self.renders[torch.as_tensor(idx, device=self.renders.device)]
+        return self.renders[to_device(idx, torch.long, self.renders.device)]
 
 
 class Trainer:
@@ -176,6 +177,8 @@ class Trainer:
         self.generator = stream_generator(cfg.seed, "views")       # view order
         self.view_queue: list[int] = []
         self.step = 0
+        self._unchecked: list[dict] = []   # records of steps whose non-finite guard is not read back yet
+        self._bad_step: int | None = None  # the step whose non-finite loss or gradient stopped the run
         self.terms: list = []   # built in registry order; a term's build may look at those before it
         for cls in all_terms():
             term = cls.build(self)
@@ -228,11 +231,23 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict:
-        """One optimisation step (bitwise reproducible on the CPU, see :func:`reproducible`)."""
-        with reproducible(self.device.type == "cpu"):
-            return self._train_step()
+        """One optimisation step (bitwise reproducible on the CPU, see :func:`reproducible`), read back at once:
+        the record's values are floats and a non-finite loss or gradient raises TrainingError before the
+        update. (`fit` reads back every ``readback_every`` steps instead: :meth:`step_deferred`.)"""
+        rec = self.step_deferred(readback=True)
+        read_back([rec])
+        return self._public(rec)
 
-    def _train_step(self) -> dict:
+    def step_deferred(self, readback: bool = False) -> dict:
+        """One optimisation step that reads nothing back from the device unless ``readback``: its record keeps
+        device scalars (readback.read_back turns them into floats) and its non-finite guard is a device flag,
+        ``rec["_ok"]``, checked at the next read-back. ``readback``: the guard reads back the flags of this
+        step and of every earlier step not yet checked (one read) before the update, and raises TrainingError
+        at the first non-finite one, as it did at every step."""
+        with reproducible(self.device.type == "cpu"):
+            return self._train_step(readback)
+
+    def _train_step(self, readback: bool = True) -> dict:
         """Every term's cameras rendered in one call, every term's loss summed, one backward pass, every
         optimiser stepped, densification from the per-camera screen-space gradients."""
         self._set_lr()
@@ -252,7 +267,11 @@ class Trainer:
                 loss = part if loss is None else loss + part
         stats_grad = self._densify_grad(step)
         loss.backward()
-        self._guard(loss, step.losses)
+        rec = {"step": self.step + 1, "view": step.view, "loss": loss.detach(), "_ok": self._finite(loss),
+               "_losses": {k: v.detach() for k, v in step.losses.items()}}
+        self._unchecked.append(rec)
+        if readback:
+            self._check_guard()
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -268,8 +287,17 @@ class Trainer:
         with torch.no_grad():
             for term in self.terms:
                 logs.update(term.after_step(step))
-        return {"step": self.step, "view": step.view, "loss": loss.item(), **logs, "gaussians": len(self.model),
-                **refined}
+        rec.update(logs)
+        rec["gaussians"] = len(self.model)
+        rec.update(refined)
+        return rec
+
+    @staticmethod
+    def _public(rec: dict) -> dict:
+        """The record as log.jsonl and on_step callers see it (without the guard's private entries)."""
+        for key in ("_ok", "_losses"):
+            rec.pop(key, None)
+        return rec
 
     def _densify_grad(self, step: Step):
         """densify.from = "blur" while the strategy still densifies and other terms add to the loss: the blur
@@ -300,17 +328,46 @@ class Trainer:
                 out.update({id(p): p for p in group["params"]})
         return list(out.values())
 
+    def _finite(self, loss) -> torch.Tensor:
+        """A 0-dim bool tensor on the device: the loss and every trained parameter's gradient are finite (a
+        sum is finite only if every term is; inf or NaN anywhere in a gradient makes its element test fail).
+        Nothing is read back."""
+        flags = [torch.isfinite(loss).reshape(())]
+        flags += [torch.isfinite(p.grad).all() for p in self.trained_parameters() if p.grad is not None]
+        return torch.stack(flags).all() if len(flags) > 1 else flags[0]
+
+    def _first_bad(self) -> int | None:
+        """The first step whose guard flag, not yet read back, says non-finite (one read of all the flags),
+        or None; the unchecked list is emptied either way."""
+        if not self._unchecked:
+            return None
+        oks = torch.stack([r["_ok"] for r in self._unchecked]).tolist()   # the one read
+        bad = next((r for r, ok in zip(self._unchecked, oks) if not ok), None)
+        self._unchecked.clear()
+        if bad is None:
+            return None
+        self._bad = bad
+        return bad["step"]
+
+    def _check_guard(self) -> None:
+        """Read back the guard flags of the steps not yet checked (one read) and raise TrainingError at the
+        first non-finite one, naming its step and its terms' losses."""
+        if self._first_bad() is not None:
+            losses = dict(self._bad["_losses"])
+            read_back([losses])
+            self._raise_bad(self._bad["step"], losses)
+
+    def _raise_bad(self, step: int, losses: dict) -> None:
+        self._bad_step = step
+        ckpt = self.run_dir / "ckpt.pt"
+        where = f"the last good checkpoint is {ckpt}" if ckpt.exists() else "no checkpoint was written yet"
+        parts = ", ".join(f"{k} {float(v):.4g}" for k, v in losses.items())
+        raise TrainingError(f"non-finite loss or gradient at step {step} ({parts}); stopped, {where}")
+
     def _guard(self, loss, losses: dict) -> None:
-        bad = not torch.isfinite(loss)
-        if not bad:  # a sum is finite only if every term is (inf or NaN anywhere makes it inf or NaN); a finite
-            # gradient whose sum overflows is told apart by the element-wise test, which only runs then
-            bad = any(p.grad is not None and not torch.isfinite(p.grad.sum()) and not torch.isfinite(p.grad).all()
-                      for p in self.trained_parameters())
-        if bad:
-            ckpt = self.run_dir / "ckpt.pt"
-            where = f"the last good checkpoint is {ckpt}" if ckpt.exists() else "no checkpoint was written yet"
-            parts = ", ".join(f"{k} {v.item():.4g}" for k, v in losses.items())
-            raise TrainingError(f"non-finite loss or gradient at step {self.step + 1} ({parts}); stopped, {where}")
+        """The non-finite guard read back at once (as train_step does): TrainingError naming the next step."""
+        if not bool(self._finite(loss)):
+            self._raise_bad(self.step + 1, dict(losses))
 
     # ------------------------------------------------------------------ the run
     def fit(self, resume: bool = False, on_step=None) -> dict:
@@ -341,23 +398,44 @@ class Trainer:
                    unit="it", dynamic_ncols=True)
         log = open(log_path, "a")
         t0 = time.perf_counter()
-        rec = {}
+        rec, queued = {}, []   # queued: records not read back yet
+        every = self.cfg.readback_every or READBACK_DEFAULT[self.device.type]
+
+        def flush() -> None:   # read back the queued records (one read) and write them to the log
+            read_back(queued)
+            for r in queued:
+                log.write(json.dumps(self._public(r)) + "\n")
+            bar.update(len(queued))
+            if queued:
+                last = queued[-1]
+                bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last.get('psnr_blurry', float('nan')):.2f}",
+                                gaussians=last["gaussians"], refresh=False)
+            queued.clear()
+
         try:
             while self.step < self.cfg.iterations:
-                rec = self.train_step()
+                n = self.step + 1
+                save = n % self.cfg.checkpoint_every == 0 or n == self.cfg.iterations
+                readback = save or n % every == 0
+                rec = self.step_deferred(readback=readback)
                 rec["seconds"] = time.perf_counter() - t0
-                log.write(json.dumps(rec) + "\n")
-                bar.update(1)
-                bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec.get('psnr_blurry', float('nan')):.2f}",
-                                gaussians=rec["gaussians"], refresh=False)
-                if self.step % self.cfg.checkpoint_every == 0 or self.step == self.cfg.iterations:
+                queued.append(rec)
+                if readback:
+                    flush()
+                if save:
                     log.flush()
                     save_checkpoint(ckpt, self)
                 if on_step is not None:
                     on_step(self, rec)
         finally:
-            bar.close()
-            log.close()
+            try:   # the steps run so far are logged (also when stopped from outside: on_step, Ctrl-C), up to
+                # the first one whose non-finite guard stopped the run or, not read back yet, would have
+                bad = self._bad_step if self._bad_step is not None else self._first_bad()
+                queued[:] = [r for r in queued if bad is None or r["step"] < bad]
+                flush()
+            finally:
+                bar.close()
+                log.close()
         self.save_model()
         plot_curves(self.run_dir / "log.jsonl", self.run_dir / "training.png")
         return rec

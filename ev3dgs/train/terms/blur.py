@@ -5,7 +5,7 @@ sharp frame at its pose). Publishes for later terms: ``linear`` (the decoded ren
 from __future__ import annotations
 
 from ..losses import average_loss, blur_average, srgb_to_linear_hdr_torch, srgb_to_linear_torch
-from ..metrics import psnr
+from ..metrics import psnr_later
 from . import Term, register
 
 
@@ -40,11 +40,11 @@ class Blur(Term):
             avg = response.curve.inverse(avg)
         step.shared["linear"], step.shared["average"] = lin, avg
         l_blur = average_loss(avg, step.target, cfg.ssim_lambda, clip=hdr)
-        return l_blur, {"blur": l_blur.item()}
+        return l_blur, {"blur": l_blur.detach()}   # read back with the step's record (readback.py)
 
     def after_step(self, step):
-        # the blurry frame as the loss saw it (averaged in data.blur_space)
-        out = {"psnr_blurry": psnr(step.shared["average"].detach().clamp(0, 1), step.target)}
+        # the blurry frame as the loss saw it (averaged in data.blur_space); its PSNR computed when read back
+        out = {"psnr_blurry": psnr_later(step.shared["average"].detach().clamp(0, 1), step.target)}
         if self.trainer.data.n_sub is not None:
             out["subposes"] = step.k
         return out

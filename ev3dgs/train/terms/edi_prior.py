@@ -55,4 +55,4 @@ class EDIPrior(Term):
         l_edi = edi_prior_loss(sh["log_l"], sh["counts"], self.inputs[0][step.view], self.inputs[1][step.view], tpm,
                                tnm, sh["event_floor"], d.count_convention, events.rel_mismatch, events.noise_rate_hz,
                                sh["times_s"], d.log_knee, sh["spread"])
-        return cfg.edi_prior * fade * l_edi, {"edi": l_edi.item()}
+        return cfg.edi_prior * fade * l_edi, {"edi": l_edi.detach()}

@@ -19,6 +19,7 @@ import torch
 from ..events import pair_list, pose_counts
 from ..frame_noise import blur_weight, estimate_noise, update_mse
 from ..losses import log_intensity, noise_event_loss, pose_event_loss, update_floor
+from ..readback import to_device
 from . import Term, register
 
 # sigma / theta assumed when the scene does not declare its sensor's mismatch (DAVIS346: a few hundredths of
@@ -41,14 +42,20 @@ class EventNoise:
         """(P,) expected noise events per pixel in each pair's window, or None without noise events."""
         if not self.noise_rate_hz > 0:
             return None
-        return torch.tensor([self.noise_rate_hz * abs(times_s[b] - times_s[a]) for a, b in pairs],
-                            dtype=like.dtype, device=like.device)
+        return to_device([self.noise_rate_hz * abs(times_s[b] - times_s[a]) for a, b in pairs], like.dtype,
+                         like.device)
+
+    @property
+    def device_floor(self) -> bool:
+        """The floor is tracked on the device (a 0-dim float64 tensor, nothing read back per step): the mean and
+        median statistics; chi2 is solved on the host (losses.chi2_floor reads a few scalars per step)."""
+        return self.floor_stat != "chi2"
 
     def loss(self, log_l, counts, pairs, tp, tn, times_s, floor, spread=None):
         """(loss, this step's floor estimate): losses.noise_event_loss with this model."""
         return noise_event_loss(log_l, counts, pairs, tp, tn, self.convention, self.rel_mismatch,
                                 self.noise_events(times_s, pairs, log_l), floor, self.knee, spread,
-                                self.floor_stat, self.huber_c)
+                                self.floor_stat, self.huber_c, device_floor=self.device_floor)
 
 
 def sensor_model(cfg, data) -> tuple[float, float, dict]:
@@ -97,9 +104,12 @@ class Events(Term):
             "neg": torch.tensor(math.log(d.neg_threshold), device=dev, requires_grad=cfg.learn_thresholds)}
         self.threshold_opt = (torch.optim.Adam(list(self.thresholds.values()), lr=1e-3)
                               if cfg.learn_thresholds else None)
-        self.floor: float | None = None        # the noise norm's model floor (losses.update_floor)
+        # the noise norm's model floor (losses.update_floor) and the blur term's squared error tracked over
+        # steps: 0-dim float64 tensors on the device where nothing needs them on the host (floor: see
+        # EventNoise.device_floor), else floats; the ``floor`` and ``blur_mse`` properties read them back
+        self._floor = None
         self.frame_noise_var = self._frame_noise()
-        self.blur_mse: float | None = None     # the blur term's squared error, tracked over steps
+        self._blur_mse = None
         self.rel_mismatch, self.noise_rate_hz, self.sensor_record = sensor_model(cfg, d)
         self.noise = EventNoise(self.rel_mismatch, self.noise_rate_hz, cfg.floor_stat, cfg.huber_c, d.log_knee,
                                 d.count_convention)
@@ -130,19 +140,25 @@ class Events(Term):
             t = data.sub_times[v][:k].astype(np.float64) * 1e-6
             tpm, tnm = (tp, tn) if tmap is None else tmap.map.thresholds(tp, tn)
             spread = tmap.posterior_spread() if tmap is not None else None   # threshold_map.weights
-            l_event, estimate = self.noise.loss(log_l, counts, pairs, tpm, tnm, t, self.floor, spread)
-            self.floor = update_floor(self.floor, estimate)
+            l_event, estimate = self.noise.loss(log_l, counts, pairs, tpm, tnm, t, self._floor, spread)
+            self._floor = update_floor(self._floor, estimate)
             if tmap is not None:  # this view's equations at the current render; the map solved again
-                tmap.map.update(v, data.bins[v][:k - 1], tp, tn, self.floor, log_l, data.log_knee)
+                tmap.map.update(v, data.bins[v][:k - 1], tp, tn, self._floor, log_l, data.log_knee)
             # what the EDI prior of this step reads (the map as updated)
-            step.shared.update(log_l=log_l, counts=counts, thresholds=(tpm, tnm), times_s=t, event_floor=self.floor,
+            step.shared.update(log_l=log_l, counts=counts, thresholds=(tpm, tnm), times_s=t, event_floor=self._floor,
                                spread=tmap.posterior_spread() if tmap is not None else None)
         # events.frame_noise: where the frames' noise is most of the blur term's error, the events weigh more
-        w_blur = blur_weight(self.frame_noise_var, self.blur_mse)
-        logs = {"event": l_event.item()}
+        w_blur = blur_weight(self.frame_noise_var, self._blur_mse)
+        logs = {"event": l_event.detach()}   # read back with the step's record (readback.py)
         if self.frame_noise_var > 0:
-            logs.update(event_weight=cfg.omega / w_blur, frame_noise=255.0 * math.sqrt(self.frame_noise_var))
-        return (cfg.omega / w_blur) * l_event, logs
+            logs.update(frame_noise=255.0 * math.sqrt(self.frame_noise_var))
+        # omega / w: a tensor w divides as a tensor (a Python float over a tensor is its reciprocal times it)
+        weight = (torch.div(torch.full_like(w_blur, cfg.omega), w_blur) if torch.is_tensor(w_blur)
+                  else cfg.omega / w_blur)
+        if self.frame_noise_var > 0:
+            logs["event_weight"] = weight
+        # a 0-dim float64 weight times the 0-dim float32 loss would be float64: cast first, as a Python float is
+        return (weight.to(l_event.dtype) if torch.is_tensor(weight) else weight) * l_event, logs
 
     def parameters(self):
         return [p for p in self.thresholds.values() if p.requires_grad]
@@ -156,14 +172,15 @@ class Events(Term):
     def after_step(self, step):
         if self.frame_noise_var > 0:
             avg = step.shared["average"].detach().clamp(0, 1)
-            self.blur_mse = update_mse(self.blur_mse, float(torch.mean((avg - step.target.to(avg.dtype)) ** 2)))
+            mse = torch.mean((avg - step.target.to(avg.dtype)) ** 2).to(torch.float64)   # exact widening
+            self._blur_mse = update_mse(self._blur_mse, mse)
         return {}
 
     def save(self, payload):
         payload["rng"]["pairs"] = self.pair_generator.get_state()
         payload["thresholds"] = {k: v.detach().clone() for k, v in self.thresholds.items()}
         payload["threshold_opt"] = None if self.threshold_opt is None else self.threshold_opt.state_dict()
-        payload["event_floor"] = self.floor
+        payload["event_floor"] = self.floor          # floats (read back: a checkpoint is a read-back step)
         payload["blur_mse"] = self.blur_mse
 
     def load(self, payload, path):
@@ -174,9 +191,22 @@ class Events(Term):
         if self.threshold_opt is not None and payload.get("threshold_opt") is not None:
             self.threshold_opt.load_state_dict(payload["threshold_opt"])
         floor = payload.get("event_floor")   # absent in checkpoints of the count norm, which has none
-        self.floor = None if floor is None else float(floor)
+        self._floor = None if floor is None else self._tracked(float(floor), self.noise.device_floor)
         mse = payload.get("blur_mse")        # absent without frame noise and in older checkpoints
-        self.blur_mse = None if mse is None else float(mse)
+        self._blur_mse = None if mse is None else self._tracked(float(mse), True)
+
+    def _tracked(self, value: float, on_device: bool):
+        return torch.tensor(value, dtype=torch.float64, device=self.trainer.device) if on_device else value
+
+    @property
+    def floor(self) -> float | None:
+        """The noise norm's model floor as a float (reads it back from the device; None before the first step)."""
+        return None if self._floor is None else float(self._floor)
+
+    @property
+    def blur_mse(self) -> float | None:
+        """The blur term's tracked squared error as a float (reads it back; None before the first step)."""
+        return None if self._blur_mse is None else float(self._blur_mse)
 
     def model_extras(self):
         return {"thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()}}

@@ -1,0 +1,192 @@
+"""A training step reads nothing back from its device between read-backs (trainer.py, readback.py).
+
+On a CUDA device every read of a device value on the host (``.item()``, ``float(t)``, ``bool(t)``, ``if t:``,
+``.tolist()``, ``.cpu()``, ``.numpy()``) and every blocking host-to-device copy (``torch.tensor(data,
+device=...)``) makes the host wait for the device. There is no device here, so the test runs the ``cpu``
+backend with those entry points patched to record each call and where it came from, and asserts:
+
+* a step that is not a read-back step makes no such call outside the rasterizer backend (the ``cpu`` backend's
+  numba kernels read their inputs on the host by design; the ``cuda`` backend, ev3dgs/splat/cuda.py, does not)
+  and the host-side draws (the view order and the event pairs come from CPU generators on every device);
+* a read-back step makes exactly two: the non-finite guard's flags and the records' values, one ``tolist``
+  each, whatever the number of steps read back;
+* a densification step (the number of Gaussians changes: its shapes are data-dependent) reads only inside the
+  strategy's grow and prune;
+* reading back every k steps trains the same model, bit for bit, as reading back at every step, and logs
+  the same values;
+* a term that calls ``.item()`` again fails the first assertion (the mutation).
+"""
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from test_train import cfg, scene_path  # noqa: E402,F401  (the small blob scene and its settings)
+
+from ev3dgs.train.trainer import Trainer  # noqa: E402
+
+READS = ("item", "tolist", "numpy", "cpu", "__bool__", "__float__", "__int__", "__index__", "nonzero")
+# the rasterizer backend's modules (the cpu backend reads on the host; not part of the step's glue)
+BACKEND = {"cpu.py", "cpu_backward.py", "cpu_tiles.py", "project.py", "project_cpu.py", "rasterize.py",
+           "reference.py", "sh.py"}
+# host tensors by construction: CPU generators' draws (the view order, the event pairs)
+HOST_SITES = {"_next_view", "pair_list"}
+SPLAT = Path(__file__).resolve().parent.parent / "ev3dgs" / "splat"
+HERE = Path(__file__).resolve()
+
+
+class Reads:
+    """Records (name, function, file) of every patched call made from ev3dgs code outside the backend."""
+
+    def __init__(self):
+        self.calls: list[tuple[str, str, str]] = []
+        self.on = True
+
+    def record(self, name: str) -> None:
+        if not self.on:
+            return
+        f = sys._getframe(2)
+        site = None
+        while f is not None:
+            path = Path(f.f_code.co_filename)
+            if path.parent == SPLAT and path.name in BACKEND:
+                return   # inside the rasterizer backend
+            if site is None and "ev3dgs" in path.parts and "torch" not in path.parts:
+                site = (f.f_code.co_name, path.name)
+            if path == HERE:
+                break
+            f = f.f_back
+        if site is None or site[0] in HOST_SITES:
+            return   # torch's or the test's own calls; host-side draws
+        self.calls.append((name, *site))
+
+
+@contextmanager
+def counting_reads():
+    reads = Reads()
+    saved = {}
+
+    def wrap(owner, name, when=None):
+        real = getattr(owner, name)
+        saved[(owner, name)] = real
+
+        def patched(*a, **k):
+            if when is None or when(*a, **k):
+                reads.record(name)
+            return real(*a, **k)
+        setattr(owner, name, patched)
+
+    for name in READS:
+        wrap(torch.Tensor, name)
+    wrap(torch, "equal")
+    wrap(torch, "nonzero")
+    # blocking host-to-device copies: host data given a device (a CPU tensor on a CUDA run)
+    on_device = lambda data, *a, **k: k.get("device") is not None and not torch.is_tensor(data)  # noqa: E731
+    wrap(torch, "tensor", on_device)
+    wrap(torch, "as_tensor", on_device)
+    wrap(torch.Tensor, "new_tensor")
+    try:
+        yield reads
+    finally:
+        for (owner, name), real in saved.items():
+            setattr(owner, name, real)
+
+
+def _cfg(scene, **kw):
+    # the noise norm with the mean floor (tracked on the device), the frames' noise weighting and the EDI prior
+    # on, so every built-in term of a default-like run takes part
+    base = dict(iterations=24, checkpoint_every=1000, backend="cpu", device="cpu", event_floor="mean",
+                frame_noise=4.0, edi_prior=0.5, readback_every=8)
+    base.update(kw)
+    return cfg(scene, **base)
+
+
+def _per_step(trainer: Trainer) -> dict[int, list]:
+    """{step: the reads between the end of the previous step and the end of this one}, from a fit."""
+    per: dict[int, list] = {}
+    with counting_reads() as reads:
+        def on_step(tr, rec):
+            per[tr.step] = list(reads.calls)
+            reads.calls.clear()
+        trainer.fit(on_step=on_step)
+    return per
+
+
+def test_no_read_between_read_backs(scene_path, tmp_path):
+    tr = Trainer(_cfg(scene_path), tmp_path / "run", quiet=True)
+    per = _per_step(tr)
+    assert sorted(per) == list(range(1, 25))
+    # the last step also writes the checkpoint, which reads the event term's tracked floats
+    ckpt = [("__float__", "floor", "events.py"), ("__float__", "blur_mse", "events.py")]
+    for step, calls in per.items():
+        if step % 8 == 0:   # read-back steps (8, 16, 24: the last is also one)
+            assert calls[:2] == [("tolist", "_first_bad", "trainer.py"), ("tolist", "read_back", "readback.py")]
+            assert calls[2:] == (ckpt if step == 24 else []), (step, calls)
+        else:
+            assert calls == [], (step, calls)
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log] == list(range(1, 25))
+    keys = ("loss", "blur", "event", "edi", "psnr_blurry", "event_weight")
+    assert all(isinstance(r[k], float) for r in log for k in keys)
+
+
+def test_densification_reads_only_in_grow_and_prune(scene_path, tmp_path):
+    # a schedule of 60 steps refines at step 21 (refine_start 15, every 10, stop 30: trainer.densify_schedule)
+    tr = Trainer(_cfg(scene_path, schedule_length=60, readback_every=100), tmp_path / "run", quiet=True)
+    assert (tr.strategy.refine_start, tr.strategy.refine_every, tr.strategy.refine_stop) == (15, 10, 30)
+    per = _per_step(tr)
+    for step, calls in per.items():
+        if step == 21:
+            assert calls and {c[2] for c in calls} == {"strategy.py"}, calls
+            assert {c[1] for c in calls} <= {"_grow", "_prune", "clone", "split", "prune"}, calls
+        elif step == 24:   # the last step reads back (and writes the checkpoint)
+            assert Counter(c[0] for c in calls)["tolist"] == 2 and calls[0][1] == "_first_bad", calls
+        else:
+            assert calls == [], (step, calls)
+
+
+def _fit(scene, out, **kw):
+    tr = Trainer(_cfg(scene, **kw), out, quiet=True)
+    tr.fit()
+    return tr, [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+
+
+@pytest.mark.parametrize("opts", [dict(), dict(event_floor="chi2", frame_noise=0.0, edi_prior=0.0),
+                                  dict(event_loss=False, edi_prior=0.0)])
+def test_reading_back_every_k_steps_trains_the_same_model(scene_path, tmp_path, opts):
+    """The read-back interval changes when values reach the host, not what is computed: the same model bytes
+    and the same log as reading back at every step (the float path of the floor and the frames' noise weight,
+    losses.update_floor and frame_noise.update_mse on floats, is checked against the device path in
+    tests/test_train_losses.py)."""
+    a, log_a = _fit(scene_path, tmp_path / "a", readback_every=1, **opts)
+    b, log_b = _fit(scene_path, tmp_path / "b", readback_every=7, **opts)
+    for name, p in a.model.params.items():
+        assert torch.equal(p, b.model.params[name]), name
+    strip = lambda log: [{k: v for k, v in r.items() if k != "seconds"} for r in log]  # noqa: E731
+    assert strip(log_a) == strip(log_b)
+
+
+def test_a_term_that_reads_back_fails_the_check(scene_path, tmp_path, monkeypatch):
+    """The mutation: the blur term's source with its log value read at once again (``l_blur.item()``, as it
+    was), compiled as the module's own code: a read at every step, which the first test's assertion rejects."""
+    import inspect
+    import textwrap
+
+    import ev3dgs.train.terms.blur as B
+
+    src = textwrap.dedent(inspect.getsource(B.Blur.loss))
+    assert '"blur": l_blur.detach()' in src
+    scope = dict(vars(B))
+    exec(compile(src.replace('"blur": l_blur.detach()', '"blur": l_blur.item()'), B.__file__, "exec"), scope)
+    monkeypatch.setattr(B.Blur, "loss", scope["loss"])
+    tr = Trainer(_cfg(scene_path, iterations=3, readback_every=100), tmp_path / "run", quiet=True)
+    per = _per_step(tr)
+    assert per[1] == per[2] == [("item", "loss", "blur.py")]
