@@ -24,8 +24,12 @@ from collections import Counter
 from contextlib import contextmanager
 from pathlib import Path
 
+import math
+
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -164,8 +168,7 @@ def _fit(scene, out, **kw):
 def test_reading_back_every_k_steps_trains_the_same_model(scene_path, tmp_path, opts):
     """The read-back interval changes when values reach the host, not what is computed: the same model bytes
     and the same log as reading back at every step (the float path of the floor and the frames' noise weight,
-    losses.update_floor and frame_noise.update_mse on floats, is checked against the device path in
-    tests/test_train_losses.py)."""
+    losses.update_floor and frame_noise.update_mse on floats, is checked against the device path below)."""
     a, log_a = _fit(scene_path, tmp_path / "a", readback_every=1, **opts)
     b, log_b = _fit(scene_path, tmp_path / "b", readback_every=7, **opts)
     for name, p in a.model.params.items():
@@ -190,3 +193,71 @@ def test_a_term_that_reads_back_fails_the_check(scene_path, tmp_path, monkeypatc
     tr = Trainer(_cfg(scene_path, iterations=3, readback_every=100), tmp_path / "run", quiet=True)
     per = _per_step(tr)
     assert per[1] == per[2] == [("item", "loss", "blur.py")]
+
+
+# ------------------------------------------------------------------ the device paths against the float paths
+_values = st.one_of(st.floats(min_value=1e-12, max_value=1e3), st.sampled_from([0.0, -1.0, math.inf, math.nan]))
+
+
+def _same(a, b) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or a == b
+
+
+@settings(max_examples=200, deadline=None)
+@given(floor=st.one_of(st.none(), st.floats(min_value=1e-9, max_value=1e3)), estimate=_values)
+def test_device_floor_update_is_the_float_update(floor, estimate):
+    """losses.update_floor on 0-dim float64 tensors gives the bits of the float arithmetic (one IEEE operation
+    per tensor operation), non-finite estimates included."""
+    from ev3dgs.train.losses import update_floor
+
+    f64 = lambda x: torch.tensor(x, dtype=torch.float64)  # noqa: E731
+    want = update_floor(floor, estimate)
+    got = update_floor(None if floor is None else f64(floor), f64(estimate))
+    assert torch.is_tensor(got) and got.dtype == torch.float64 and _same(float(got), want)
+
+
+@settings(max_examples=200, deadline=None)
+@given(tracked=st.one_of(st.none(), st.floats(min_value=1e-9, max_value=1.0)), mse=_values,
+       noise=st.sampled_from([0.0, 1e-5, 4e-4, 0.01]))
+def test_device_frame_noise_weight_is_the_float_weight(tracked, mse, noise):
+    """frame_noise.update_mse and blur_weight on tensors: the float path's bits (a division written as a tensor
+    division, not as Python's scalar-over-tensor, which multiplies by the reciprocal)."""
+    from ev3dgs.train.frame_noise import blur_weight, update_mse
+
+    f64 = lambda x: torch.tensor(x, dtype=torch.float64)  # noqa: E731
+    want = update_mse(tracked, mse)
+    got = update_mse(None if tracked is None else f64(tracked), f64(mse))
+    if want is None:   # a first non-finite step: nothing tracked (None on floats, NaN on the device)
+        assert math.isnan(float(got)) and blur_weight(noise, got) == 1.0
+        return
+    assert _same(float(got), want)
+    w = blur_weight(noise, got)
+    assert _same(float(w), blur_weight(noise, want))
+
+
+@pytest.mark.parametrize("stat", ["mean", "median"])
+@pytest.mark.parametrize("floor", [None, 3e-3])
+def test_device_floor_gives_the_float_floors_loss(stat, floor):
+    """noise_event_loss with the floor on the device: the same loss bits and the same estimate as with floats."""
+    from ev3dgs.train.losses import noise_event_loss
+
+    g = torch.Generator().manual_seed(5)
+    log_l = torch.randn(4, 6, 7, generator=g) * 0.3
+    counts = torch.randint(0, 3, (4, 2, 6, 7), generator=g).cumsum(0)   # cumulative ON/OFF counts per pose
+    pairs = [(0, 1), (0, 3), (1, 2), (2, 3)]
+    tp, tn = torch.tensor(0.25), torch.tensor(0.3)
+    ref, est = noise_event_loss(log_l, counts, pairs, tp, tn, floor=floor, floor_stat=stat)
+    dev, est_t = noise_event_loss(log_l, counts, pairs, tp, tn, floor_stat=stat, device_floor=True,
+                                  floor=None if floor is None else torch.tensor(floor, dtype=torch.float64))
+    assert torch.equal(ref, dev) and torch.is_tensor(est_t) and float(est_t) == est
+
+
+def test_a_record_before_its_read_back_still_prints(scene_path, tmp_path):
+    """An on_step callback that formats the record between read-backs (the live viewer's status line) gets
+    the values it would get after the read-back (reading them at once), and log.jsonl is unchanged by it."""
+    tr = Trainer(_cfg(scene_path, iterations=4, readback_every=100), tmp_path / "run", quiet=True)
+    seen = []
+    tr.fit(on_step=lambda t, rec: seen.append((f"{rec['loss']:.6f}", f"{rec['psnr_blurry']:.6f}", rec)))
+    for loss, psnr, rec in seen:   # the records were turned into floats in place at the end
+        assert isinstance(rec["loss"], float) and isinstance(rec["psnr_blurry"], float)
+        assert (loss, psnr) == (f"{rec['loss']:.6f}", f"{rec['psnr_blurry']:.6f}")

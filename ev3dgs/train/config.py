@@ -371,8 +371,8 @@ def mismatch_error(path, diffs: list[tuple]) -> ConfigError:
     """The one-line refusal of a resume whose settings differ from the saved run's."""
     listed = "; ".join(f"{k}: saved {a!r} vs given {b!r}" for k, a, b in diffs)
     return ConfigError(f"--resume: {path} was made with other settings ({listed}); only --iterations, "
-                       "checkpoint_every and --threads may change when resuming (more --iterations keep the "
-                       "run's schedules)")
+                       "checkpoint_every, readback_every and --threads may change when resuming (more "
+                       "--iterations keep the run's schedules)")
 
 
 def resume_config(run_dir, opts: dict, given: set[str]) -> TrainConfig:

@@ -83,11 +83,12 @@ def blur_weight(noise_var: float, mse: float | None) -> float:
 
 def update_mse(tracked: float | None, mse: float) -> float | None:
     """``mse`` (one step's) as an exponential average over steps; a non-finite step leaves it as it was."""
-    if torch.is_tensor(mse):   # on the device (0-dim float64): the same IEEE operations, nothing read back
+    if torch.is_tensor(mse):   # on the device (0-dim float64): the same IEEE operations, nothing read back;
+        # NaN stands for "nothing tracked yet" (None on the float path; blur_weight reads both as weight 1)
         if tracked is None:
-            return mse
+            return torch.where(torch.isfinite(mse), mse, math.nan)
         avg = MSE_MOMENTUM * tracked + (1.0 - MSE_MOMENTUM) * mse
-        return torch.where(torch.isfinite(mse), avg, tracked)
+        return torch.where(torch.isfinite(mse), torch.where(torch.isfinite(tracked), avg, mse), tracked)
     if not math.isfinite(mse):
         return tracked
     return mse if tracked is None else MSE_MOMENTUM * tracked + (1.0 - MSE_MOMENTUM) * mse

@@ -22,6 +22,12 @@ class Later:
     value: torch.Tensor
     fn: Callable[[float], float] = float
 
+    def __float__(self) -> float:   # read at once (an on_step callback printing a value before its read-back)
+        return float(self.fn(float(self.value)))
+
+    def __format__(self, spec: str) -> str:
+        return format(float(self), spec)
+
 
 def pending(value) -> bool:
     """True for an entry read_back will convert (a tensor or a Later)."""

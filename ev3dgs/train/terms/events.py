@@ -206,7 +206,8 @@ class Events(Term):
     @property
     def blur_mse(self) -> float | None:
         """The blur term's tracked squared error as a float (reads it back; None before the first step)."""
-        return None if self._blur_mse is None else float(self._blur_mse)
+        mse = None if self._blur_mse is None else float(self._blur_mse)
+        return None if mse is None or math.isnan(mse) else mse   # NaN: nothing tracked yet (update_mse)
 
     def model_extras(self):
         return {"thresholds": {k: v.detach().exp().item() for k, v in self.thresholds.items()}}
