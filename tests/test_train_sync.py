@@ -261,3 +261,29 @@ def test_a_record_before_its_read_back_still_prints(scene_path, tmp_path):
     for loss, psnr, rec in seen:   # the records were turned into floats in place at the end
         assert isinstance(rec["loss"], float) and isinstance(rec["psnr_blurry"], float)
         assert (loss, psnr) == (f"{rec['loss']:.6f}", f"{rec['psnr_blurry']:.6f}")
+
+
+def test_the_guard_stops_at_the_read_back_after_a_non_finite_step(scene_path, tmp_path, monkeypatch):
+    """readback_every 8, checkpoints every 20, the blur loss NaN from step 25 on: the read-back of step 32
+    stops the run naming step 25, the checkpoint of step 20 stays (step 40's is never written: a checkpoint
+    comes after a read-back that found every step finite), and log.jsonl ends at step 24."""
+    from ev3dgs.train.trainer import TrainingError
+    import ev3dgs.train.terms.blur as T
+
+    real, calls = T.average_loss, []
+
+    def poisoned(*a, **k):
+        calls.append(1)
+        out = real(*a, **k)
+        return out * float("nan") if len(calls) >= 25 else out
+
+    monkeypatch.setattr(T, "average_loss", poisoned)
+    tr = Trainer(_cfg(scene_path, iterations=60, checkpoint_every=20), tmp_path / "run", quiet=True)
+    with pytest.raises(TrainingError, match=r"non-finite loss or gradient at step 25 \(blur nan.*ckpt\.pt"):
+        tr.fit()
+    assert tr.step == 31   # stopped inside step 32, before its update
+    ckpt = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)
+    assert ckpt["step"] == 20 and all(torch.isfinite(v).all() for v in ckpt["model"].values()
+                                      if isinstance(v, torch.Tensor))
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log] == list(range(1, 25))
