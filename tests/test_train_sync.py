@@ -287,3 +287,18 @@ def test_the_guard_stops_at_the_read_back_after_a_non_finite_step(scene_path, tm
                                       if isinstance(v, torch.Tensor))
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == list(range(1, 25))
+
+
+@pytest.mark.parametrize("opts, sites", [
+    (dict(event_floor=None, frame_noise=0.0, edi_prior=0.0), {("chi2_floor", "losses.py"), ("h", "losses.py")}),
+    (dict(refine_poses=True, pose_start=0), {("step", "pose_refine.py"), ("<genexpr>", "pose_refine.py")}),
+    (dict(threshold_map=True), {("_calibrate", "threshold_map.py")}),
+])
+def test_the_reads_that_remain_are_where_the_docs_say(scene_path, tmp_path, opts, sites):
+    """docs/trainer.md, "Host reads": the chi2 floor's Newton solve (the noise norm's default floor), pose
+    refinement's skip of a non-finite gradient and the threshold map's calibration still read inside a step,
+    and nothing else does."""
+    tr = Trainer(_cfg(scene_path, iterations=6, readback_every=100, **opts), tmp_path / "run", quiet=True)
+    per = _per_step(tr)
+    for step in range(1, 6):
+        assert per[step] and {c[1:] for c in per[step]} <= sites, (step, per[step])

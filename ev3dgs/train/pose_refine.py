@@ -193,7 +193,8 @@ class PoseRefiner:
 
     @staticmethod
     def _homogeneous(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(len(R), 1, 4)
+        bottom = R.new_zeros(len(R), 1, 4)   # (0, 0, 0, 1) made on the device: no host-to-device copy per step
+        bottom[..., 3] = 1.0
         return torch.cat([torch.cat([R, t[:, :, None]], -1), bottom], -2)
 
     def c2w(self, v: int) -> torch.Tensor:
