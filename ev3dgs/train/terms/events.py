@@ -55,7 +55,7 @@ class EventNoise:
         """(loss, this step's floor estimate): losses.noise_event_loss with this model."""
         return noise_event_loss(log_l, counts, pairs, tp, tn, self.convention, self.rel_mismatch,
                                 self.noise_events(times_s, pairs, log_l), floor, self.knee, spread,
-                                self.floor_stat, self.huber_c, device_floor=self.device_floor)
+                                self.floor_stat, self.huber_c, self.device_floor)
 
 
 def sensor_model(cfg, data) -> tuple[float, float, dict]:
