@@ -302,3 +302,18 @@ def test_the_reads_that_remain_are_where_the_docs_say(scene_path, tmp_path, opts
     per = _per_step(tr)
     for step in range(1, 6):
         assert per[step] and {c[1:] for c in per[step]} <= sites, (step, per[step])
+
+
+def test_readback_every_is_a_checked_top_level_key():
+    from ev3dgs.errors import ConfigError
+    from ev3dgs.train.config import TrainConfig
+
+    assert TrainConfig.from_toml({"scene": "s.h5", "readback_every": 50}).readback_every == 50
+    assert TrainConfig.from_toml({"scene": "s.h5", "readback_every": "auto"}).readback_every is None
+    for bad in (0, -3, "often"):
+        with pytest.raises(ConfigError, match="readback_every") as e:
+            TrainConfig.from_toml({"scene": "s.h5", "readback_every": bad})
+        assert "\n" not in str(e.value)
+    # it changes when values reach the host, not the model: a resumed run may change it
+    a, b = TrainConfig(scene="s.h5"), TrainConfig(scene="s.h5", readback_every=10)
+    assert a.differences(b) == [] and a.to_toml()["readback_every"] == "auto"

@@ -295,7 +295,8 @@ class TrainConfig:
         notes = {"event_weight": f"{self.omega:g}", "event_floor": self.floor_stat,
                  "event_huber": f"{self.huber_c:g}", "densify_from": self.densify_source,
                  "frame_noise": "estimated from the frames", "event_mismatch": "from the scene's sensor model",
-                 "threads": "torch's choice"}
+                 "threads": "torch's choice",
+                 "readback_every": ", ".join(f"{n} on {d}" for d, n in READBACK_DEFAULT.items())}
         from .layout import FIELD_KEY
 
         return {FIELD_KEY[k]: v for k, v in notes.items() if getattr(self, k) is None}
