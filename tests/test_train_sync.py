@@ -48,34 +48,39 @@ HERE = Path(__file__).resolve()
 
 
 class Reads:
-    """Records (name, function, file) of every patched call made from ev3dgs code outside the backend."""
+    """Records (name, function, file) of every patched call made from ev3dgs code outside the backend.
+    ``opaque``: file names whose frames stand for device kernels (their own reads are not the caller's)."""
 
-    def __init__(self):
+    def __init__(self, opaque: tuple[str, ...] = ()):
         self.calls: list[tuple[str, str, str]] = []
         self.on = True
+        self.opaque = opaque
 
     def record(self, name: str) -> None:
         if not self.on:
             return
         f = sys._getframe(2)
         site = None
-        while f is not None:
+        while f is not None:   # up to the first ev3dgs frame: the code that asked for the read
             path = Path(f.f_code.co_filename)
-            if path.parent == SPLAT and path.name in BACKEND:
-                return   # inside the rasterizer backend
-            if site is None and "ev3dgs" in path.parts and "torch" not in path.parts:
+            if path.name in self.opaque or "gsplat" in path.parts:
+                return   # inside a stand-in for device kernels
+            if "ev3dgs" in path.parts:
+                if path.parent == SPLAT and path.name in BACKEND:
+                    return   # inside the rasterizer backend
                 site = (f.f_code.co_name, path.name)
-            if path == HERE:
                 break
+            if path == HERE:
+                return   # the test's own calls
             f = f.f_back
         if site is None or site[0] in HOST_SITES:
-            return   # torch's or the test's own calls; host-side draws
+            return   # torch's or pytest's own calls; host-side draws
         self.calls.append((name, *site))
 
 
 @contextmanager
-def counting_reads():
-    reads = Reads()
+def counting_reads(opaque: tuple[str, ...] = ()):
+    reads = Reads(opaque)
     saved = {}
 
     def wrap(owner, name, when=None):
@@ -317,3 +322,23 @@ def test_readback_every_is_a_checked_top_level_key():
     # it changes when values reach the host, not the model: a resumed run may change it
     a, b = TrainConfig(scene="s.h5"), TrainConfig(scene="s.h5", readback_every=10)
     assert a.differences(b) == [] and a.to_toml()["readback_every"] == "auto"
+
+
+@pytest.mark.parametrize("cams", [1, 5])
+def test_the_cuda_glue_reads_nothing_back(cams):
+    """ev3dgs/splat/cuda.py between gsplat's calls (here gsplat's torch implementations on the CPU, as in
+    tests/test_gsplat_parity.py; on a GPU they are kernels): no read of a device value, forward or backward,
+    for one camera and for a stack. (gsplat's isect_tiles reads its intersection count itself, once per call.)"""
+    pytest.importorskip("gsplat.cuda._torch_impl", reason="gsplat with its torch reference functions")
+    import test_gsplat_parity as P
+
+    s = P.make_scene(3)
+    if cams > 1:
+        s.viewmat = torch.stack([s.viewmat] * cams)
+    case = P.CASES[0]
+    with counting_reads(opaque=("test_gsplat_parity.py",)) as reads:
+        img, alpha, meta, leaves = P._render(s, "glue", case, P.TorchOps())
+        meta["means2d"].retain_grad()
+        (img.sum() + alpha.sum()).backward()
+    assert reads.calls == []
+    assert meta["means2d"].grad is not None and (img.shape[0] == cams if cams > 1 else img.ndim == 3)

@@ -57,7 +57,8 @@ def rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, widt
     ``width``, ``height``, ``n_cameras``.
 
     Nothing here reads a GPU value back to the host (no ``.item()``, no branch on tensor values, no
-    ``torch.linalg.inv``, whose singularity check synchronises: ``inv_ex``); gsplat's
+    ``torch.linalg.inv``, whose singularity check synchronises: ``inv_ex``, no host-to-device copy; pinned
+    by tests/test_train_sync.py through gsplat's torch implementations); gsplat's
     ``isect_tiles`` itself reads the intersection count back once per call to size its buffers (gsplat
     1.5.3, Intersect.cpp): once per stack, not once per camera.
 
@@ -71,7 +72,8 @@ def rasterization_cuda(means, quats, scales, opacities, colors, viewmat, K, widt
     viewmats = viewmat if batched else viewmat[None]
     C = viewmats.shape[0]
     Ks = K.detach() if K.ndim == 3 else K.detach()[None].expand(C, 3, 3)
-    Kg = Ks + Ks.new_tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]])  # gsplat's pixel centres: +0.5
+    Kg = Ks.clone()   # gsplat's pixel centres: the principal point + 0.5 (in place: a constant made with
+    Kg[:, :2, 2] += 0.5   # new_tensor would be a blocking host-to-device copy at every call)
     radii, means2d_g, depths, conics, _ = ops.fully_fused_projection(
         means, None, quats, scales, viewmats, Kg.contiguous(), width, height, eps2d=eps2d, near_plane=near_plane,
         far_plane=far_plane, packed=False, opacities=opacities)
