@@ -336,26 +336,24 @@ class Trainer:
         flags += [torch.isfinite(p.grad).all() for p in self.trained_parameters() if p.grad is not None]
         return torch.stack(flags).all() if len(flags) > 1 else flags[0]
 
-    def _first_bad(self) -> int | None:
-        """The first step whose guard flag, not yet read back, says non-finite (one read of all the flags),
-        or None; the unchecked list is emptied either way."""
+    def _first_bad(self) -> dict | None:
+        """The record of the first step whose guard flag, not yet read back, says non-finite (one read of all
+        the flags), or None; the unchecked list is emptied either way."""
         if not self._unchecked:
             return None
         oks = torch.stack([r["_ok"] for r in self._unchecked]).tolist()   # the one read
         bad = next((r for r, ok in zip(self._unchecked, oks) if not ok), None)
         self._unchecked.clear()
-        if bad is None:
-            return None
-        self._bad = bad
-        return bad["step"]
+        return bad
 
     def _check_guard(self) -> None:
         """Read back the guard flags of the steps not yet checked (one read) and raise TrainingError at the
         first non-finite one, naming its step and its terms' losses."""
-        if self._first_bad() is not None:
-            losses = dict(self._bad["_losses"])
+        bad = self._first_bad()
+        if bad is not None:
+            losses = dict(bad["_losses"])
             read_back([losses])
-            self._raise_bad(self._bad["step"], losses)
+            self._raise_bad(bad["step"], losses)
 
     def _raise_bad(self, step: int, losses: dict) -> None:
         self._bad_step = step
@@ -430,7 +428,10 @@ class Trainer:
         finally:
             try:   # the steps run so far are logged (also when stopped from outside: on_step, Ctrl-C), up to
                 # the first one whose non-finite guard stopped the run or, not read back yet, would have
-                bad = self._bad_step if self._bad_step is not None else self._first_bad()
+                bad = self._bad_step
+                if bad is None:
+                    first = self._first_bad()
+                    bad = None if first is None else first["step"]
                 queued[:] = [r for r in queued if bad is None or r["step"] < bad]
                 flush()
             finally:
