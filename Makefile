@@ -10,7 +10,7 @@ export OMP_WAIT_POLICY := PASSIVE
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml setup.py ev3dgs/io/aedat4/_fast.c
+$(STAMP): pyproject.toml setup.py ev3dgs/io/aedat4/_fast.c ev3dgs/splat/_raster.c
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --upgrade pip
 	# torch first and pinned: an unpinned torch pulls several GB of CUDA packages. On a machine whose pip

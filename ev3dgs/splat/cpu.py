@@ -28,6 +28,10 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
   replays the recorded fragments (no spans, exp or tests: ~2.4x faster than recomputing them); over the
   budget it recomputes them (the same updates in the same order: bitwise the same gradients, tested).
 
+float32 calls (the training dtype) run the same tile kernels written in C with 8-lane SIMD when the
+optional extension is built (cpu_simd.py: the same rules and schedule, exp(-sigma) from a polynomial with a
+stated error bound); float64 calls, and every call without the extension, run the numba kernels here.
+
 Batched: C cameras share one call. Their tile lists are concatenated (camera c's tile t is global tile
 c * n_tiles + t), so forward and backward are one parallel loop over (camera, tile), and the per-pair
 gradients are summed per camera in the same order as a single-camera call: bitwise the same result.
@@ -49,6 +53,7 @@ from numba import njit, prange
 
 # the kernels live in cpu_tiles.py (constants, boxes, spans, depth sort, binning) and cpu_backward.py; the
 # names tests and tools reach through this module are imported here
+from . import cpu_simd
 from .cpu_backward import _backward, _reduce
 from .cpu_tiles import ALPHA_MAX, ALPHA_MIN, SPAN_MIN_WIDTH, T_MIN, TILE  # noqa: F401
 from .cpu_tiles import _bin, _box, _ellipse_box, _entry, _pack, _pixel_boxes, _row_span, _span_params, _stable_argsort, _tile  # noqa: F401
@@ -180,21 +185,28 @@ def _per_camera(n_cameras: int) -> int:
     return max(1, -(-numba.get_num_threads() // max(1, n_cameras)))
 
 
-def _fragment_buffers(boxes, dtype, record: bool) -> tuple:
+def _fragment_buffers(boxes, dtype, simd=False, *, record: bool) -> tuple:
     """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
-    pixel of every tile-list entry's box (an upper bound). Without ``record`` (no input needs a
-    gradient) or over FRAGMENT_BUDGET bytes, nothing is recorded (frag_n empty) and a backward recomputes."""
+    pixel of every tile-list entry's box (an upper bound); for the C kernels (``simd``) 8 slots per box row
+    and group of 8 tile columns (cpu_simd.fragment_slots), exp(-sigma) only (frag_pix empty). Without
+    ``record`` (no input needs a gradient) or over FRAGMENT_BUDGET bytes, nothing is recorded (frag_n empty)
+    and a backward recomputes."""
     none = (np.zeros(1, np.int64), np.zeros(0, np.uint8), np.zeros(0, dtype), np.zeros(0, np.int32))
     if not record or len(boxes) == 0:
         return none
-    b = boxes.astype(np.int64)
-    areas = (b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)  # empty boxes are stored as (0, -1, 0, -1): 0
+    if simd:
+        slots, per_slot = cpu_simd.fragment_slots(boxes), np.dtype(dtype).itemsize
+    else:
+        b = boxes.astype(np.int64)
+        slots = (b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)  # empty boxes are stored as (0, -1, 0, -1): 0
+        per_slot = 1 + np.dtype(dtype).itemsize
     start = np.zeros(len(boxes) + 1, np.int64)
-    np.cumsum(areas, out=start[1:])
+    np.cumsum(slots, out=start[1:])
     total = int(start[-1])
-    if total * (1 + np.dtype(dtype).itemsize) > FRAGMENT_BUDGET:
+    if total * per_slot > FRAGMENT_BUDGET:
         return none
-    return start, np.empty(total, np.uint8), np.empty(total, dtype), np.empty(len(boxes), np.int32)
+    pix = np.empty(0 if simd else total, np.uint8)
+    return start, pix, np.empty(total, dtype), np.empty(len(boxes), np.int32)
 
 
 def _consts(dtype) -> np.ndarray:
@@ -229,9 +241,14 @@ class _RasterizeCPU(torch.autograd.Function):
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
         params, boxes = _parallel(_pack, m, q, col, o, smax, offsets, ids, gboxes, width, height, tiles_x)
-        frags = _fragment_buffers(boxes, col.dtype, record=any(ctx.needs_input_grad[:4]))
-        _parallel(_forward, params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
-                  _consts(col.dtype), *frags, _threads(work))
+        ctx.simd = cpu_simd.active(col.dtype, col.shape[2])  # the C kernels (float32), else numba's
+        frags = _fragment_buffers(boxes, col.dtype, ctx.simd, record=any(ctx.needs_input_grad[:4]))
+        if ctx.simd:
+            cpu_simd.forward(params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
+                             frags[::2] + frags[3:], _threads(work))
+        else:
+            _parallel(_forward, params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
+                      _consts(col.dtype), *frags, _threads(work))
         ctx.save_for_backward(means2d, conics, colors, opacities, background)
         ctx.arrays = (params, boxes, bg, offsets, ids, work, t_final, last, frags)
         ctx.size = (width, height, tiles_x, C, m.shape[1], col.shape[2])
@@ -249,8 +266,13 @@ class _RasterizeCPU(torch.autograd.Function):
               else _np(grad_alpha).astype(dtype, copy=False)[..., 0])
         per_pair = np.zeros((len(ids), 6 + D), dtype)
         # replays the fragments when the forward recorded them (frags not empty), else recomputes them
-        _parallel(_backward, params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last, gi, ga,
-                  per_pair, _consts(dtype), *frags, _threads(work))
+        if ctx.simd:
+            cpu_simd.backward(params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last,
+                              np.ascontiguousarray(gi), np.ascontiguousarray(ga), per_pair, frags[::2] + frags[3:],
+                              _threads(work))
+        else:
+            _parallel(_backward, params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last, gi, ga,
+                      per_pair, _consts(dtype), *frags, _threads(work))
         g_mean, g_conic, g_ops, g_col = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None

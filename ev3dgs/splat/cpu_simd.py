@@ -1,0 +1,184 @@
+"""The `cpu` backend's SIMD tile kernels (`_raster.c`, a C extension called through ctypes), float32 only.
+
+Same tiles, entries, rules and work list as the numba kernels in cpu.py / cpu_backward.py, but per tile-list
+entry and row of its (tile-clipped) pixel box, the pixels run 8 at a time in SIMD lanes (columns x0 ... x0 + 7
+from the box's first column x0, then x0 + 8 ...; no per-row span solve: the lanes' sigma test decides),
+branch free with per-lane masks (inside the box, pixel not done, 0 <= sigma <= sigma_max,
+alpha >= 1/255, T (1 - alpha) >= 1e-4), on structure-of-arrays tile state (T, each colour channel, stop,
+done). The forward records exp(-sigma) densely per (box row, lane group) slot, 0 where it composited
+nothing, so the backward replays the same lanes with masks (no exp, no tests); over the fragment budget
+it recomputes them with the same exp and tests (bitwise the same gradients). Gradients are accumulated per
+lane and summed over the 8 lanes in a fixed order at the end of each entry.
+
+Vehicle, by measurement: numba's LLVM did not vectorise an 8-lane rewrite of the numba kernel (it ran
+0.41-0.63x as fast as the scalar one), so the lanes are written explicitly with GCC/clang vector extensions.
+The extension holds two builds of the same code, AVX2 (ymm registers: the packed vmulps / vaddps / vdivps /
+vcmpps / vblendvps / vpslld ymm instructions can be seen with ``objdump -d`` on the built module) and the
+compiler's baseline (SSE2 on x86_64: each operation on two xmm halves), chosen at run time by
+``__builtin_cpu_supports("avx2")``: the wheel is built without -march and runs on any CPU. Compiled with
+-ffp-contract=off (no FMA), both builds do the same float32 operations in the same order: bitwise the
+same results (tested).
+
+Exactness. sigma, alpha, the transmittance and the compositing are the numba kernel's float32 operations
+in its order, so only two things differ from it:
+
+* exp(-sigma) comes from a polynomial (`EXP_REL_ERROR`): x = -sigma = n ln2 + f, n = round(x / ln2),
+  f = (x - n C1) - n C2 with Cody-Waite's split ln2 = C1 + C2 (C1 = 0.693359375 has 9 significant bits, so
+  n C1 is exact for |n| <= 126; the first subtraction is exact by Sterbenz's lemma where n != 0, |f| <=
+  ln2 / 2 + a rounding), then exp(f) = 1 + f + f^2 P(f) with Cephes' degree-5 expf minimax P, and 2^n
+  put in the exponent bits (exact; inputs are clamped to sigma <= 87, no subnormals). With u = 2^-24 the
+  relative error is at most: reduction, f's one rounding (|f| u <= 0.35 u) and C1 + C2 - ln2 (|n| 2.3e-11
+  <= 3e-9 over the whole range, 2e-10 for sigma <= 5.6); P's approximation error (max |1 + f + f^2 P(f) -
+  e^f| / e^f over |f| <= 0.35 in exact arithmetic: 1.3e-8 < 0.22 u, computed in tests/test_splat_simd.py);
+  Horner's rounding of f^2 P (<= 7 roundings of a term <= 0.07 of the result: <= 0.5 u) and the two final
+  additions (<= 2 u, since 1 + f >= 0.65), and the final product (u): in all <= 4.1 u + 3e-9 < 2^-22 (4 u
+  = 2.4e-7). The test checks every float32 sigma in [0, ln(255 * 0.99) + 1e-6] (slow) and a strided
+  sample of it (default) against float64 exp, and the bound property-wise over [0, 87].
+  numpy's float32 exp is within about 1 u, so the two kernels' alphas differ by at most ~5 u relative.
+* the order of a Gaussian's gradient sum: per lane, then the 8 lanes (numba: fragment by fragment).
+
+Both are tolerances in tests/test_splat_simd.py, derived there. Fragments whose sigma or alpha lie within
+a few u of a cut-off may be composited by one kernel and not the other (as between the numba kernel and
+`reference`); the tests allow for that as the existing float32 tests do.
+
+Threads: C pthreads (the GIL released by ctypes), tile t of the cost-sorted work list (cpu._work_order) to
+thread t mod n, as the numba kernels deal them; tiles own disjoint pixels and per-pair rows, so every
+result is bitwise the same for any thread count (tested).
+
+Used when the extension was built and imported, the colours are float32 with at most DMAX channels and
+KERNEL is "simd" (the default; the environment variable EV3DGS_CPU_KERNEL=numba, or setting KERNEL, selects
+the numba kernels, which serve float64 and are the fallback without a C compiler).
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+
+import numpy as np
+
+try:
+    from . import _raster as _ext
+except ImportError:  # built without a C compiler: the numba kernels run
+    _ext = None
+
+KERNEL = os.environ.get("EV3DGS_CPU_KERNEL", "simd")  # "simd" or "numba" (tests and benchmarks compare them)
+ISA = -1  # -1: best build for this CPU, 0: the portable build, 1: AVX2 (where the CPU has it)
+DMAX = 8  # colour channels the C kernels serve (as in _raster.c)
+LANES = 8
+# benchmarks: a list to which every call appends ("forward" or "backward", per-tile thread CPU time in ns)
+TILE_TIMES: list | None = None
+# exp(-sigma)'s relative error bound (derivation above), and the unit roundoff of float32
+U32 = 2.0 ** -24
+EXP_REL_ERROR = 2.0 ** -22
+
+_P = ctypes.c_void_p
+_I = ctypes.c_int64
+
+
+class Job(ctypes.Structure):
+    """_raster.c's job_t."""
+    _fields_ = [("params", _P), ("boxes", _P), ("offsets", _P), ("work", _P), ("n_work", _I),
+                ("background", _P), ("D", _I), ("width", _I), ("height", _I), ("tiles_x", _I), ("n_tiles", _I),
+                ("image", _P), ("t_final", _P), ("last", _P), ("frag_start", _P), ("frag_e", _P),
+                ("frag_n", _P), ("record", _I), ("grad_image", _P), ("grad_alpha", _P), ("per_pair", _P),
+                ("n_threads", _I), ("isa", _I), ("tile_ns", _P)]
+
+
+_lib = None
+
+
+def _load():
+    """The extension's shared object as a ctypes library (ctypes.CDLL releases the GIL during calls)."""
+    global _lib
+    if _lib is None and _ext is not None:
+        lib = ctypes.CDLL(_ext.__file__)
+        for name in ("ev3dgs_raster_forward", "ev3dgs_raster_backward"):
+            getattr(lib, name).argtypes = [ctypes.POINTER(Job)]
+            getattr(lib, name).restype = ctypes.c_int
+        lib.ev3dgs_raster_isa.argtypes = [_I]
+        lib.ev3dgs_raster_isa.restype = ctypes.c_int
+        lib.ev3dgs_exp_neg.argtypes = [_P, _P, _I, _I]
+        lib.ev3dgs_exp_neg.restype = None
+        _lib = lib
+    return _lib
+
+
+def available() -> bool:
+    """Whether the C kernels were built (and load)."""
+    return _ext is not None and _load() is not None
+
+
+def active(dtype, channels: int) -> bool:
+    """Whether a call with these colours runs the C kernels."""
+    return KERNEL == "simd" and np.dtype(dtype) == np.float32 and 1 <= channels <= DMAX and available()
+
+
+def isa() -> str:
+    """Which build runs: "avx2" or "portable"."""
+    return "avx2" if _load().ev3dgs_raster_isa(ISA) == 1 else "portable"
+
+
+def exp_neg(sigma: np.ndarray) -> np.ndarray:
+    """The kernels' exp(-sigma) for float32 sigma >= 0 (for tests)."""
+    s = np.ascontiguousarray(sigma, np.float32)
+    out = np.empty_like(s)
+    _load().ev3dgs_exp_neg(s.ctypes.data, out.ctypes.data, s.size, ISA)
+    return out
+
+
+def fragment_slots(boxes: np.ndarray) -> np.ndarray:
+    """Slots each tile-list entry's recorded fragments take: 8 per row of its box and group of 8 columns
+    (x0 ... x0 + 7, x0 + 8 ..., from the box's first column x0)."""
+    b = boxes.astype(np.int64)
+    rows = np.maximum(b[:, 3] - b[:, 2] + 1, 0)
+    groups = -(-np.maximum(b[:, 1] - b[:, 0] + 1, 0) // LANES)
+    return rows * groups * LANES
+
+
+def _ptr(a: np.ndarray | None):
+    return None if a is None else a.ctypes.data
+
+
+_pending = {}
+
+
+def _tile_ns(offsets):
+    if TILE_TIMES is None:
+        return None
+    a = np.zeros(len(offsets) - 1, np.int64)
+    _pending["tile_ns"] = a
+    return a.ctypes.data
+
+
+def _keep_tile_ns(kind, job):
+    if TILE_TIMES is not None and job.tile_ns:
+        TILE_TIMES.append((kind, _pending.pop("tile_ns")))
+
+
+def forward(params, boxes, offsets, work, background, width, height, tiles_x, image, t_final, last, frags,
+            n_threads):
+    """cpu._forward's contract (float32); frags = (frag_start, frag_e, frag_n), frag_n empty: not recorded."""
+    start, fe, fn = frags
+    record = len(fn) == len(params) and len(params) > 0
+    n_tiles = tiles_x * (-(-height // 16))
+    job = Job(_ptr(params), _ptr(boxes), _ptr(offsets), _ptr(work), len(work), _ptr(background),
+              image.shape[3], width, height, tiles_x, n_tiles, _ptr(image), _ptr(t_final), _ptr(last),
+              _ptr(start), _ptr(fe), _ptr(fn), int(record), None, None, None, n_threads, ISA, _tile_ns(offsets))
+    if _load().ev3dgs_raster_forward(ctypes.byref(job)) != 0:
+        raise ValueError("C rasterizer: unsupported channel count")
+    _keep_tile_ns("forward", job)
+
+
+def backward(params, boxes, offsets, work, background, width, height, tiles_x, t_final, last, grad_image,
+             grad_alpha, per_pair, frags, n_threads):
+    """cpu_backward._backward's contract (float32): per_pair[k] gets entry k's gradient."""
+    start, fe, fn = frags
+    record = len(fn) == len(params) and len(params) > 0
+    n_tiles = tiles_x * (-(-height // 16))
+    job = Job(_ptr(params), _ptr(boxes), _ptr(offsets), _ptr(work), len(work), _ptr(background),
+              per_pair.shape[1] - 6, width, height, tiles_x, n_tiles, None, _ptr(t_final), _ptr(last),
+              _ptr(start), _ptr(fe), _ptr(fn), int(record), _ptr(grad_image), _ptr(grad_alpha), _ptr(per_pair),
+              n_threads, ISA, _tile_ns(offsets))
+    if _load().ev3dgs_raster_backward(ctypes.byref(job)) != 0:
+        raise ValueError("C rasterizer: unsupported channel count")
+    _keep_tile_ns("backward", job)
