@@ -190,13 +190,13 @@ static inline v8f SUF(exp_neg)(v8f s)
     v8f shifter = SUF(bcast)(12582912.0f);
     v8f r = (x * SUF(bcast)(1.44269504088896341f) + shifter) - shifter;
     v8f f = (x - r * SUF(bcast)(0.693359375f)) - r * SUF(bcast)(-2.12194440e-4f);
-    v8f p = SUF(bcast)(1.9875691500e-4f);
-    p = p * f + SUF(bcast)(1.3981999507e-3f);
-    p = p * f + SUF(bcast)(8.3334519073e-3f);
-    p = p * f + SUF(bcast)(4.1665795894e-2f);
-    p = p * f + SUF(bcast)(1.6666665459e-1f);
-    p = p * f + SUF(bcast)(5.0000001201e-1f);
-    v8f y = (p * (f * f) + f) + SUF(bcast)(1.0f);
+    /* P by Estrin's scheme (three independent pairs: a shorter dependency chain than Horner's) */
+    v8f f2 = f * f;
+    v8f q0 = SUF(bcast)(1.6666665459e-1f) * f + SUF(bcast)(5.0000001201e-1f);
+    v8f q1 = SUF(bcast)(8.3334519073e-3f) * f + SUF(bcast)(4.1665795894e-2f);
+    v8f q2 = SUF(bcast)(1.9875691500e-4f) * f + SUF(bcast)(1.3981999507e-3f);
+    v8f p = q0 + f2 * (q1 + f2 * q2);
+    v8f y = (p * f2 + f) + SUF(bcast)(1.0f);
     v8i n = __builtin_convertvector(r, v8i);
     v8f pow2 = (v8f)((n + SUF(ibcast)(127)) << 23);
     return y * pow2;
@@ -220,14 +220,40 @@ static void SUF(exp_neg_array)(const float *s, float *out, int64_t n)
     int64_t x0 = (tile % job->tiles_x) * TILE, y0 = (tile / job->tiles_x) * TILE;                   \
     int64_t w = job->width - x0 < TILE ? job->width - x0 : TILE;                                    \
     int64_t h = job->height - y0 < TILE ? job->height - y0 : TILE;                                  \
-    int64_t D = job->D, stride = 7 + D;                                                             \
+    int64_t stride = 7 + D;                                                                         \
     const v8i iota_i = {0, 1, 2, 3, 4, 5, 6, 7};                                                    \
     const v8f iota_f = {0.0f, 1.0f, 2.0f, 3.0f, 4.0f, 5.0f, 6.0f, 7.0f};
+
+/* The (row, lane group) items of an entry's box [bx0, bx1] x [by0, by1] as one loop: lanes gx ... gx + 7 of
+   row py (dy, cdy = c dy^2 of that row), base = the first lane's index in the tile arrays. Its trip count is
+   known at the entry, so the branch predictor misses about once per entry instead of once per row. */
+#define ITEMS_BEGIN                                                                                 \
+    {                                                                                               \
+        int32_t gx_next = bx0, py = by0;                                                            \
+        int64_t n_items = (int64_t)(by1 - by0 + 1) * ((bx1 - bx0) / 8 + 1);                         \
+        v8f dy = SUF(bcast)((float)py - my), cdy = c * dy * dy;                                     \
+        for (int64_t it = 0; it < n_items; it++) {                                                  \
+            int32_t gx = gx_next;                                                                   \
+            int64_t base = (py - y0) * TILE + (gx - x0);                                            \
+            v8f dy_row = dy, cdy_row = cdy;                                                         \
+            gx_next += 8;                                                                           \
+            if (gx_next > bx1) {                                                                    \
+                gx_next = bx0;                                                                      \
+                py++;                                                                               \
+                dy = SUF(bcast)((float)py - my);                                                    \
+                cdy = c * dy * dy;                                                                  \
+            }                                                                                       \
+            {                                                                                       \
+                v8f dy = dy_row, cdy = cdy_row;
+#define ITEMS_END                                                                                   \
+            }                                                                                       \
+        }                                                                                           \
+    }
 
 /* Per tile: entries in depth order; per box row and group of 8 pixels (tile columns 0-7, 8-15) all lanes at
    once, the same rules as cpu._forward, branch free: a lane composites when it is inside the box, its pixel
    not done, 0 <= sigma <= sigma_max, alpha >= 1/255 and T (1 - alpha) >= 1e-4 (below: the pixel is done). */
-static void SUF(forward_tile)(const job_t *job, int64_t gt)
+static inline __attribute__((always_inline)) void SUF(forward_impl)(const job_t *job, int64_t gt, const int64_t D)
 {
     TILE_GEOMETRY
     const v8f half = SUF(bcast)(0.5f), one = SUF(bcast)(1.0f), amax = SUF(bcast)(0.99f);
@@ -259,24 +285,13 @@ static void SUF(forward_tile)(const job_t *job, int64_t gt)
             v8i kk = SUF(ibcast)((int32_t)(k + 1 - start));
             v8i hi = SUF(ibcast)(bx1);
             float *fe = job->record ? job->frag_e + job->frag_start[k] : NULL;
-            for (int32_t py = by0; py <= by1; py++) {
-                v8f dy = SUF(bcast)((float)py - my);
-                v8f cdy = c * dy * dy;
-                for (int32_t gx = bx0; gx <= bx1; gx += 8) {  /* lanes: columns gx ... gx + 7 */
-                    int64_t base = (py - y0) * TILE + (gx - x0);
+            ITEMS_BEGIN
                     v8i lane_i = SUF(ibcast)(gx) + iota_i;
                     v8f dx = (SUF(bcast)((float)gx) + iota_f) - SUF(bcast)(mx);
                     v8f sigma = half * (a * dx * dx + cdy) + b * dx * dy;
                     v8i dn = *(v8iu *)(done + base);
                     v8i m = (lane_i <= hi) & ~dn & (sigma >= zero) & (sigma <= smax);
-                    if (!SUF(lanes)(m)) {
-                        if (fe) {
-                            *(v8fu *)fe = zero;
-                            fe += 8;
-                        }
-                        continue;
-                    }
-                    v8f e = SUF(exp_neg)(sigma);
+                    v8f e = SUF(exp_neg)(sigma);  /* every group: a branch on empty groups mispredicts */
                     v8f raw = o * e;
                     v8f alpha = SUF(sel)(raw < amax, raw, amax);
                     m &= alpha >= amin;
@@ -302,8 +317,7 @@ static void SUF(forward_tile)(const job_t *job, int64_t gt)
                         fe += 8;
                         nf += __builtin_popcount(SUF(lanes)(m));
                     }
-                }
-            }
+            ITEMS_END
         }
         if (job->record) job->frag_n[k] = nf;
     }
@@ -328,7 +342,8 @@ static inline float SUF(hsum)(v8f v)  /* lanes summed in a fixed order: a tree, 
    fragment where the recorded exp(-sigma) is not 0 (replay) or where the forward's tests pass for an entry
    before the pixel's stop (recompute: the same set, the same e, so bitwise the same gradients). The
    gradients of cpu_backward._fragment_grad per lane, summed per entry over the lanes in a fixed order. */
-static void SUF(backward_tile)(const job_t *job, int64_t gt)
+static inline __attribute__((always_inline)) void SUF(backward_impl)(const job_t *job, int64_t gt,
+                                                                    const int64_t D)
 {
     TILE_GEOMETRY
     const v8f half = SUF(bcast)(0.5f), one = SUF(bcast)(1.0f), amax = SUF(bcast)(0.99f);
@@ -375,11 +390,7 @@ static void SUF(backward_tile)(const job_t *job, int64_t gt)
         v8i kk = SUF(ibcast)((int32_t)(k - start));
         v8i hi = SUF(ibcast)(bx1);
         const float *fe = job->record ? job->frag_e + job->frag_start[k] : NULL;
-        for (int32_t py = by0; py <= by1; py++) {
-            v8f dy = SUF(bcast)((float)py - my);
-            v8f cdy = c * dy * dy;
-            for (int32_t gx = bx0; gx <= bx1; gx += 8) {
-                int64_t base = (py - y0) * TILE + (gx - x0);
+        ITEMS_BEGIN
                 v8i lane_i = SUF(ibcast)(gx) + iota_i;
                 v8f dx = (SUF(bcast)((float)gx) + iota_f) - SUF(bcast)(mx);
                 v8f e;
@@ -388,7 +399,6 @@ static void SUF(backward_tile)(const job_t *job, int64_t gt)
                     e = *(const v8fu *)fe;
                     fe += 8;
                     m = e != zero;
-                    if (!SUF(lanes)(m)) continue;
                 } else {
                     v8f sigma = half * (a * dx * dx + cdy) + b * dx * dy;
                     m = (lane_i <= hi) & (kk < *(v8iu *)(stop + base)) & (sigma >= zero) & (sigma <= smax);
@@ -429,8 +439,7 @@ static void SUF(backward_tile)(const job_t *job, int64_t gt)
                 gb = gb + d_sigma * dx * dy;
                 gc = gc + d_sigma * half * dy * dy;
                 go = go + d_alpha * SUF(sel)(gm, e, zero);
-            }
-        }
+        ITEMS_END
         float *pp = job->per_pair + k * (6 + D);
         pp[0] += SUF(hsum)(gmx);
         pp[1] += SUF(hsum)(gmy);
@@ -440,6 +449,20 @@ static void SUF(backward_tile)(const job_t *job, int64_t gt)
         pp[5] += SUF(hsum)(go);
         for (int64_t d = 0; d < D; d++) pp[6 + d] = SUF(hsum)(gcol[d]);
     }
+}
+
+
+/* D = 3 (RGB) compiled with the channel count known, every other D through the general loop */
+static void SUF(forward_tile)(const job_t *job, int64_t gt)
+{
+    if (job->D == 3) SUF(forward_impl)(job, gt, 3);
+    else SUF(forward_impl)(job, gt, job->D);
+}
+
+static void SUF(backward_tile)(const job_t *job, int64_t gt)
+{
+    if (job->D == 3) SUF(backward_impl)(job, gt, 3);
+    else SUF(backward_impl)(job, gt, job->D);
 }
 
 #endif
