@@ -303,3 +303,44 @@ def test_exp_within_its_bound_on_every_cut_off_sigma():
 @given(st.lists(st.floats(0, 87, width=32), min_size=1, max_size=40))
 def test_property_exp_bound_up_to_87(values):
     assert _exp_error(np.array(values, np.float32)) <= cpu_simd.EXP_REL_ERROR
+
+
+# --- schedule model and benchmark ----------------------------------------------------------------------------
+
+def _schedule():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools" / "bench"))
+    import schedule
+
+    return schedule
+
+
+def test_schedule_models_against_hand_computed_loads():
+    s = _schedule()
+    cost = np.array([5.0, 4.0, 3.0, 3.0, 1.0])
+    # round robin over 2 threads in the order given: (5 + 3 + 1, 4 + 3) = (9, 7): 16 / 18
+    assert s.round_robin(cost, np.arange(5), 2) == pytest.approx(16 / 18)
+    # a work queue in the same order: 5 | 4, 3 -> thread 2 (4 < 5): 5 | 7, 3 -> thread 1: 8 | 7, 1 -> 8 | 8
+    assert s.greedy(cost, 2, np.arange(5)) == pytest.approx(1.0)
+    # the queue in a bad order (cheap first): 1 | 3, 3 -> t1: 4 | 3, 4 -> t2: 4 | 7, 5 -> t1: 9 | 7
+    assert s.greedy(cost, 2, np.arange(5)[::-1]) == pytest.approx(16 / 18)
+    assert s.round_robin(cost, np.arange(5), 1) == 1.0 and s.greedy(cost, 5) == pytest.approx(16 / 25)
+
+
+@needs_c
+@pytest.mark.slow
+def test_kernel_benchmark_script(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "k.json"
+    subprocess.run([sys.executable, str(root / "tools" / "bench" / "bench_raster.py"), "--kernels", "--quick",
+                    "--repeats", "1", "--json", str(out), "--plot", str(tmp_path / "k.png")], check=True, cwd=root)
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["fragments"] > 100_000 and row["speedup_kernels_cpu"]["median"] > 0
+    assert (tmp_path / "k.png").stat().st_size > 0

@@ -89,15 +89,18 @@ int ev3dgs_raster_isa(int64_t want)
 typedef struct {
     const job_t *job;
     tile_fn fn;
-    int64_t t;
+    int64_t *next;             /* shared: the next index of the work list to take */
 } worker_t;
 
+/* Each thread takes the next tile of the cost-sorted work list when it is free (a shared atomic counter: the
+   list-scheduling a greedy longest-first deal approximates, without its imbalance when the list's order
+   misjudges the costs). Which thread runs a tile does not change any result: tiles own their pixels and
+   per-pair rows. */
 static void *run_worker(void *arg)
 {
     worker_t *w = arg;
     const job_t *job = w->job;
-    int64_t n = job->n_threads;
-    for (int64_t i = w->t; i < job->n_work; i += n) {  /* round robin over the cost-sorted work list */
+    for (int64_t i; (i = __atomic_fetch_add(w->next, 1, __ATOMIC_RELAXED)) < job->n_work;) {
         if (job->tile_ns) {
             struct timespec t0, t1;
             clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t0);
@@ -119,8 +122,8 @@ static int run(job_t *job, tile_fn fn)
     worker_t workers[MAX_THREADS];
     pthread_t tid[MAX_THREADS];
     int started[MAX_THREADS] = {0};
-    int64_t n = job->n_threads;
-    for (int64_t i = 0; i < n; i++) workers[i] = (worker_t){job, fn, i};
+    int64_t n = job->n_threads, next = 0;
+    for (int64_t i = 0; i < n; i++) workers[i] = (worker_t){job, fn, &next};
     for (int64_t i = 1; i < n; i++) started[i] = pthread_create(&tid[i], NULL, run_worker, &workers[i]) == 0;
     run_worker(&workers[0]);
     for (int64_t i = 1; i < n; i++) {

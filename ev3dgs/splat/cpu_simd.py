@@ -43,9 +43,11 @@ Both are tolerances in tests/test_splat_simd.py, derived there. Fragments whose 
 a few u of a cut-off may be composited by one kernel and not the other (as between the numba kernel and
 `reference`); the tests allow for that as the existing float32 tests do.
 
-Threads: C pthreads (the GIL released by ctypes), tile t of the cost-sorted work list (cpu._work_order) to
-thread t mod n, as the numba kernels deal them; tiles own disjoint pixels and per-pair rows, so every
-result is bitwise the same for any thread count (tested).
+Threads: C pthreads (the GIL released by ctypes) over the cost-sorted work list (cpu._work_order, the
+numba kernels' list), each thread taking the next tile when it is free (a shared atomic counter; the numba
+kernels deal the list round robin instead: tools/bench/schedule.py compares the two on measured per-tile
+times). Tiles own disjoint pixels and per-pair rows, so every result is bitwise the same for any thread
+count and whichever thread ran a tile (tested).
 
 Used when the extension was built and imported, the colours are float32 with at most DMAX channels and
 KERNEL is "simd" (the default; the environment variable EV3DGS_CPU_KERNEL=numba, or setting KERNEL, selects

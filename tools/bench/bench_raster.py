@@ -2,6 +2,7 @@
 
     python tools/bench/bench_raster.py [--quick] --json tools/results/bench_raster.json [--plot ...]
     python tools/bench/bench_raster.py --fragments [--json tools/results/bench_raster_fragments.json]
+    python tools/bench/bench_raster.py --kernels [--quick] [--json tools/results/bench_raster_kernels.json]
 
 Workloads: 10k Gaussians at 200x200 and 50k at 400x400 (--quick: the first only); a random cloud in front
 of the camera (z 4 +- 0.5, scales 0.01-0.04, opacity 0.1-0.9, f = 1.1 W), the workload of our reference
@@ -16,6 +17,15 @@ the forward and backward kernels' CPU time per composited fragment (one thread, 
 cycles at the clock /proc/cpuinfo reports); 1- and 2-thread forward+backward timed alternately (parallel
 efficiency T1 / (2 T2), wall time); and the tile schedule's load balance for 2, 8 and 16 threads from the
 per-tile costs (visited pixels).
+
+--kernels: the `cpu` backend's two tile-kernel implementations in the same run, alternating call by call:
+the C SIMD kernels (ev3dgs/splat/cpu_simd.py, float32) and the numba kernels (cpu_simd.KERNEL = "numba").
+Per workload (10k @ 200x200 cloud; without --quick also one camera of the 346x260 step scene with 50k
+Gaussians): forward+backward of the whole rasterization call (CPU time) and of the kernels alone (thread CPU
+time around the forward and backward kernel calls), one thread, with the ratio numba / C per pair of
+alternated runs (min / median / max); composited fragments and each kernel's cycles per fragment at the
+/proc/cpuinfo clock; and the C kernels' 2-thread parallel efficiency T1 / (2 T2) from wall times of the
+kernels alone, 1 and 2 threads alternated.
 """
 from __future__ import annotations
 
@@ -86,7 +96,13 @@ def main(argv=None) -> int:
                     help="bar chart, '' for none (default: tools/results/bench_raster.png)")
     ap.add_argument("--fragments", action="store_true",
                     help="fragment statistics, per-fragment kernel cost and thread analysis instead (default: off)")
+    ap.add_argument("--kernels", action="store_true",
+                    help="C SIMD kernels against numba kernels, alternating (default: off)")
     args = ap.parse_args(argv)
+    if args.kernels:
+        json_path = args.json if args.json != ap.get_default("json") else "tools/results/bench_raster_kernels.json"
+        plot_path = args.plot if args.plot != ap.get_default("plot") else "tools/results/bench_raster_kernels.png"
+        return run_kernels(args.repeats, args.quick, json_path, plot_path)
     if args.fragments:
         json_path = args.json if args.json != ap.get_default("json") else "tools/results/bench_raster_fragments.json"
         plot_path = args.plot if args.plot != ap.get_default("plot") else "tools/results/bench_raster_fragments.png"
@@ -227,6 +243,161 @@ def run_fragments(repeats, json_path, plot_path) -> int:
     if plot_path:
         plot_fragments(rows, plot_path)
     return 0
+
+
+class KernelClock:
+    """Thread CPU time and wall time spent in the tile kernels (either implementation) and the fragments
+    the C forward composited, while installed."""
+
+    def __init__(self):
+        import ev3dgs.splat.cpu as cpu
+        import ev3dgs.splat.cpu_simd as cs
+
+        self.cpu, self.cs = cpu, cs
+        self.real = (cpu._parallel, cs.forward, cs.backward)
+        self.reset()
+
+    def reset(self):
+        self.cpu_s = {"forward": 0.0, "backward": 0.0}
+        self.wall_s = 0.0
+        self.fragments = 0
+
+    def _timed(self, name, fn, *a):
+        t0, w0 = time.thread_time(), time.perf_counter()
+        out = fn(*a)
+        self.wall_s += time.perf_counter() - w0
+        self.cpu_s[name] += time.thread_time() - t0
+        return out
+
+    def __enter__(self):
+        real_parallel, real_fwd, real_bwd = self.real
+        names = {"_forward": "forward", "_backward": "backward"}
+
+        def parallel(kernel, *a):
+            name = names.get(getattr(kernel, "__name__", ""))
+            return self._timed(name, real_parallel, kernel, *a) if name else real_parallel(kernel, *a)
+
+        def fwd(*a):
+            out = self._timed("forward", real_fwd, *a)
+            frag_n = a[11][2]
+            if len(frag_n) == len(a[0]):
+                self.fragments = int(frag_n.sum())
+            return out
+
+        self.cpu._parallel = parallel
+        self.cs.forward = fwd
+        self.cs.backward = lambda *a: self._timed("backward", real_bwd, *a)
+        return self
+
+    def __exit__(self, *exc):
+        self.cpu._parallel, self.cs.forward, self.cs.backward = self.real
+
+
+def _spread(values):
+    v = sorted(values)
+    return {"min": v[0], "median": statistics.median(v), "max": v[-1]}
+
+
+def run_kernels(repeats, quick, json_path, plot_path) -> int:
+    import ev3dgs.splat.cpu_simd as cs
+
+    if not cs.available():
+        print("error: the C rasterizer extension is not built (python setup.py build_ext --inplace)", file=sys.stderr)
+        return 2
+    torch.set_num_threads(1)
+    mhz = clock_mhz()
+    workloads = [("cloud", 10_000, 200, 200)] + ([] if quick else [("step scene", 50_000, 346, 260)])
+    rows = []
+    kinds = ("simd", "numba")
+    for name, n, w, h in workloads:
+        params, vm, K = cloud(n, w) if name == "cloud" else step_scene(n, w, h)
+        res = {k: {"call_cpu": [], "fwd_cpu": [], "bwd_cpu": []} for k in kinds}
+        fragments = 0
+        with KernelClock() as clock:
+            for k in kinds:  # warm-up (numba's cache load)
+                cs.KERNEL = k
+                run("cpu", params, vm, K, w, 1, h)
+            for _ in range(repeats):
+                for k in kinds:
+                    cs.KERNEL = k
+                    clock.reset()
+                    c0 = time.process_time()
+                    run("cpu", params, vm, K, w, 1, h)
+                    res[k]["call_cpu"].append(time.process_time() - c0)
+                    res[k]["fwd_cpu"].append(clock.cpu_s["forward"])
+                    res[k]["bwd_cpu"].append(clock.cpu_s["backward"])
+                    if k == "simd":
+                        fragments = clock.fragments
+            # the C kernels' wall time at 1 and 2 threads, alternated
+            cs.KERNEL = "simd"
+            walls = {1: [], 2: []}
+            run("cpu", params, vm, K, w, 2, h)
+            for _ in range(repeats):
+                for th in (1, 2):
+                    clock.reset()
+                    run("cpu", params, vm, K, w, th, h)
+                    walls[th].append(clock.wall_s)
+        cs.KERNEL = "simd"
+        row = {"scene": name, "gaussians": n, "width": w, "height": h, "fragments": fragments}
+        for k in kinds:
+            for key, vals in res[k].items():
+                row[f"{k}_{key}_ms"] = _spread([1e3 * v for v in vals])
+            kern = [f + b for f, b in zip(res[k]["fwd_cpu"], res[k]["bwd_cpu"])]
+            row[f"{k}_kernels_cpu_ms"] = _spread([1e3 * v for v in kern])
+            for part in ("fwd", "bwd"):
+                ns = [1e9 * v / max(fragments, 1) for v in res[k][f"{part}_cpu"]]
+                row[f"{k}_{part}_ns_per_fragment"] = _spread(ns)
+                if mhz:
+                    row[f"{k}_{part}_cycles_per_fragment"] = _spread([v * mhz / 1e3 for v in ns])
+        for key in ("call_cpu", "fwd_cpu", "bwd_cpu"):
+            row[f"speedup_{key}"] = _spread([a / b for a, b in zip(res["numba"][key], res["simd"][key])])
+        row["speedup_kernels_cpu"] = _spread([(a1 + a2) / (b1 + b2) for a1, a2, b1, b2 in
+                                              zip(res["numba"]["fwd_cpu"], res["numba"]["bwd_cpu"],
+                                                  res["simd"]["fwd_cpu"], res["simd"]["bwd_cpu"])])
+        row["simd_efficiency_2t"] = _spread([a / (2 * b) for a, b in zip(walls[1], walls[2])])
+        rows.append(row)
+        cyc = (f", cycles/fragment fwd {row['simd_fwd_cycles_per_fragment']['median']:.1f} vs "
+               f"{row['numba_fwd_cycles_per_fragment']['median']:.1f}, bwd "
+               f"{row['simd_bwd_cycles_per_fragment']['median']:.1f} vs "
+               f"{row['numba_bwd_cycles_per_fragment']['median']:.1f}") if mhz else ""
+        sp = row["speedup_kernels_cpu"]
+        print(f"{name} {n} @ {w}x{h}: {fragments} fragments; kernels fwd+bwd C "
+              f"{row['simd_kernels_cpu_ms']['median']:.2f} ms, numba {row['numba_kernels_cpu_ms']['median']:.2f} ms: "
+              f"x{sp['median']:.2f} ({sp['min']:.2f}-{sp['max']:.2f}); whole call "
+              f"x{row['speedup_call_cpu']['median']:.2f} ({row['speedup_call_cpu']['min']:.2f}-"
+              f"{row['speedup_call_cpu']['max']:.2f}){cyc}; C T1/(2 T2) median "
+              f"{row['simd_efficiency_2t']['median']:.2f}")
+    save_json(json_path, {"clock_mhz": mhz, "isa": cs.isa(), "repeats": repeats, "rows": rows},
+              ", one thread unless stated, C vs numba kernels alternated")
+    if plot_path:
+        plot_kernels(rows, plot_path)
+    return 0
+
+
+def plot_kernels(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    parts = [("fwd_cpu", "forward kernel"), ("bwd_cpu", "backward kernel"), ("call_cpu", "whole call")]
+    for i, r in enumerate(rows):
+        for j, (key, label) in enumerate(parts):
+            for k, kind in enumerate(("numba", "simd")):
+                v = r[f"{kind}_{key}_ms"]
+                x = i * 4 + j + 0.4 * k
+                ax.bar(x, v["median"], width=0.4, color=("C0", "C1")[k], label=kind if (i, j) == (0, 0) else None)
+                ax.errorbar(x, v["median"], yerr=[[v["median"] - v["min"]], [v["max"] - v["median"]]], color="k",
+                            capsize=2, lw=0.8)
+    ax.set_xticks([i * 4 + j + 0.2 for i in range(len(rows)) for j in range(3)],
+                  [f"{lab}\n{r['gaussians'] // 1000}k {r['width']}x{r['height']}" for r in rows for _, lab in parts],
+                  fontsize=6)
+    ax.set_ylabel("ms CPU time, one thread")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def plot_fragments(rows, path):

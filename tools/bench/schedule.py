@@ -7,8 +7,10 @@ thread, median over --repeats runs per tile); the schedule the kernels use (tile
 Gaussian) list length, most first, dealt round robin: thread t runs tiles t, t + n, ...) is then simulated
 on those times for n threads: efficiency = total / (n * the most loaded thread's time), i.e. the best
 T1 / (n Tn) the schedule allows when threads do not slow each other down (memory bandwidth, shared caches
-and SMT are not modelled). For comparison: the same deal ordered by the measured times themselves, and a
-greedy longest-first list schedule (each tile to the least loaded thread; what a dynamic work queue gives).
+and SMT are not modelled). Two schedules over the same list: the numba kernels' round-robin deal and the C
+kernels' shared work queue (a free thread takes the next tile: each tile goes to the least loaded thread);
+for comparison the round robin ordered by the measured times, and the greedy longest-first schedule on
+the measured times (the best a list schedule can do knowing them).
 Workloads: the 10k @ 200x200 cloud of bench_raster.py and one camera of the 346x260 blur+event step's scene
 with 50k Gaussians.
 """
@@ -41,9 +43,12 @@ def round_robin(cost, order, n):
     return float(cost.sum() / (n * loads.max())) if loads.max() > 0 else 1.0
 
 
-def greedy(cost, n):
+def greedy(cost, n, order=None):
+    """Each tile, in ``order`` (default: by cost, most first), to the least loaded thread: what threads taking
+    the next tile of a shared work list when they are free do (the C kernels' schedule, ordered by list
+    length)."""
     heap = [(0.0, i) for i in range(n)]
-    for c in sorted(cost, reverse=True):
+    for c in (sorted(cost, reverse=True) if order is None else cost[order]):
         load, i = heapq.heappop(heap)
         heapq.heappush(heap, (load + c, i))
     top = max(load for load, _ in heap)
@@ -102,6 +107,7 @@ def main(argv=None) -> int:
         row = {"scene": name, "gaussians": n, "width": w, "height": h, "tiles": int(len(cost)),
                "total_ms": 1e3 * float(cost.sum()), "largest_tile_share": float(cost.max() / cost.sum()),
                "efficiency": {str(t): {"round_robin_by_list_length": round_robin(cost, by_length, t),
+                                       "work_queue_by_list_length": greedy(cost, t, by_length),
                                        "round_robin_by_time": round_robin(cost, by_cost, t),
                                        "greedy_by_time": greedy(cost, t)} for t in THREADS},
                "rank_correlation_length_time": float(np.corrcoef(np.argsort(np.argsort(length)),
@@ -111,6 +117,7 @@ def main(argv=None) -> int:
         print(f"{name} {n} @ {w}x{h}: {len(cost)} tiles, {row['total_ms']:.1f} ms, largest tile "
               f"{100 * row['largest_tile_share']:.1f} %; round robin by list length: "
               + ", ".join(f"{t}: {e[str(t)]['round_robin_by_list_length']:.2f}" for t in THREADS)
+              + "; work queue: " + ", ".join(f"{t}: {e[str(t)]['work_queue_by_list_length']:.2f}" for t in THREADS)
               + f"; greedy by time at 8/16: {e['8']['greedy_by_time']:.2f}/{e['16']['greedy_by_time']:.2f}")
     save_json(args.json, {"rows": rows, "median_of": args.repeats}, ", per-tile C kernel times, one thread")
     if args.plot:
@@ -127,7 +134,8 @@ def plot(rows, path):
     fig, ax = plt.subplots(figsize=(6, 3.2))
     for r in rows:
         lab = f"{r['scene']} {r['gaussians'] // 1000}k @ {r['width']}x{r['height']}"
-        for key, style in (("round_robin_by_list_length", "o-"), ("greedy_by_time", "x--")):
+        for key, style in (("round_robin_by_list_length", "o-"), ("work_queue_by_list_length", "s-"),
+                           ("greedy_by_time", "x--")):
             ax.plot(THREADS, [r["efficiency"][str(t)][key] for t in THREADS], style,
                     label=f"{lab}: {key.replace('_', ' ')}")
     ax.set_xlabel("threads")
