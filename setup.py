@@ -18,6 +18,6 @@ setup(packages=PACKAGES,
                              extra_compile_args=["-O3", "-std=c11", "-pthread", "-Wall", "-Wextra"],
                              extra_link_args=["-pthread"]),
                    Extension("ev3dgs.splat._raster", ["ev3dgs/splat/_raster.c"], optional=True,
-                             extra_compile_args=["-O3", "-std=gnu11", "-pthread", "-ffp-contract=off", "-Wno-psabi", "-Wall",
-                                                 "-Wextra"],
+                             extra_compile_args=["-O3", "-std=gnu11", "-pthread", "-ffp-contract=off", "-Wno-psabi",
+                                                 "-Wall", "-Wextra"],
                              extra_link_args=["-pthread"])])

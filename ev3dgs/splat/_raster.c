@@ -273,7 +273,8 @@ static inline __attribute__((always_inline)) void SUF(forward_impl)(const job_t 
     memset(C, 0, sizeof(float) * (size_t)(D * NPIX + PAD));
     int64_t n_done = 0, P = w * h;
     int64_t start = job->offsets[gt], end = job->offsets[gt + 1];
-    for (int64_t k = start; k < end; k++) {
+    int64_t k = start;
+    for (; k < end; k++) {
         if (n_done == P) break;                /* every pixel done: nothing later is composited */
         const float *q = job->params + k * stride;
         const int32_t *bx = job->boxes + 4 * k;
@@ -324,6 +325,8 @@ static inline __attribute__((always_inline)) void SUF(forward_impl)(const job_t 
         }
         if (job->record) job->frag_n[k] = nf;
     }
+    if (job->record)
+        for (; k < end; k++) job->frag_n[k] = 0;  /* after the tile finished: no fragments */
     const float *bg = job->background;
     for (int64_t ly = 0; ly < h; ly++)
         for (int64_t lx = 0; lx < w; lx++) {

@@ -33,10 +33,11 @@ in its order, so only two things differ from it:
   rounding of f^2 P (P by Estrin's scheme, for a shorter dependency chain: <= 9 roundings of a term <= 0.07
   of the result: <= 0.7 u) and the two final additions (f + f^2 P, |.| <= 0.41, then + 1, against a result
   >= 0.7: <= 0.6 u + u); the product by 2^n is exact. In all <= 2.9 u + 3e-9 < 3 u, stated with a margin as
-  EXP_REL_ERROR = 2^-22 (4 u = 2.4e-7), which the tests check, not assume: every float32 sigma in [0, ln(255 * 0.99) + 1e-6] (a slow test; measured maximum 1.31 u =
-  7.8e-8 at sigma = 5.286) and a strided sample of it (default) against float64 exp, and property-wise
-  over [0, 87] (measured 1.38 u on a 2e7-point sweep).
-  numpy's float32 exp is within about 1 u, so the two kernels' alphas differ by at most ~5 u relative.
+  EXP_REL_ERROR = 2^-22 (4 u = 2.4e-7), which the tests check, not assume: every float32 sigma in
+  [0, ln(255 * 0.99) + 1e-6] (a slow test; measured maximum 1.31 u = 7.8e-8 at sigma = 5.286) and a
+  strided sample of it (default) against float64 exp, and property-wise over [0, 87] (measured 1.38 u on a
+  2e7-point sweep). libm's float32 exp (the numba kernels') is within about 1 u, so the two kernels'
+  alphas differ by at most ~5 u relative.
 * the order of a Gaussian's gradient sum: per lane, then the 8 lanes (numba: fragment by fragment).
 
 Both are tolerances in tests/test_splat_simd.py, derived there. Fragments whose sigma or alpha lie within

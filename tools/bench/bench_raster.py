@@ -25,7 +25,8 @@ Gaussians): forward+backward of the whole rasterization call (CPU time) and of t
 time around the forward and backward kernel calls), one thread, with the ratio numba / C per pair of
 alternated runs (min / median / max); composited fragments and each kernel's cycles per fragment at the
 /proc/cpuinfo clock; and the C kernels' 2-thread parallel efficiency T1 / (2 T2) from wall times of the
-kernels alone, 1 and 2 threads alternated.
+kernels alone, 1 and 2 threads alternated, with the ratio of the CPU time both threads spent to one thread's
+(near 1 with a low efficiency: the threads waited for a core held by other work).
 """
 from __future__ import annotations
 
@@ -260,12 +261,14 @@ class KernelClock:
     def reset(self):
         self.cpu_s = {"forward": 0.0, "backward": 0.0}
         self.wall_s = 0.0
+        self.process_s = 0.0  # CPU time of all the process's threads
         self.fragments = 0
 
     def _timed(self, name, fn, *a):
-        t0, w0 = time.thread_time(), time.perf_counter()
+        t0, w0, p0 = time.thread_time(), time.perf_counter(), time.process_time()
         out = fn(*a)
         self.wall_s += time.perf_counter() - w0
+        self.process_s += time.process_time() - p0
         self.cpu_s[name] += time.thread_time() - t0
         return out
 
@@ -330,13 +333,14 @@ def run_kernels(repeats, quick, json_path, plot_path) -> int:
                         fragments = clock.fragments
             # the C kernels' wall time at 1 and 2 threads, alternated
             cs.KERNEL = "simd"
-            walls = {1: [], 2: []}
+            walls, cpus = {1: [], 2: []}, {1: [], 2: []}
             run("cpu", params, vm, K, w, 2, h)
             for _ in range(repeats):
                 for th in (1, 2):
                     clock.reset()
                     run("cpu", params, vm, K, w, th, h)
                     walls[th].append(clock.wall_s)
+                    cpus[th].append(clock.process_s)
         cs.KERNEL = "simd"
         row = {"scene": name, "gaussians": n, "width": w, "height": h, "fragments": fragments}
         for k in kinds:
@@ -355,6 +359,9 @@ def run_kernels(repeats, quick, json_path, plot_path) -> int:
                                               zip(res["numba"]["fwd_cpu"], res["numba"]["bwd_cpu"],
                                                   res["simd"]["fwd_cpu"], res["simd"]["bwd_cpu"])])
         row["simd_efficiency_2t"] = _spread([a / (2 * b) for a, b in zip(walls[1], walls[2])])
+        # the CPU time 2 threads spend against 1 (1: no extra work; a low efficiency with this near 1 means the
+        # threads waited for a core, not that the kernels do more work in parallel)
+        row["simd_cpu_2t_over_1t"] = _spread([b / a for a, b in zip(cpus[1], cpus[2])])
         rows.append(row)
         cyc = (f", cycles/fragment fwd {row['simd_fwd_cycles_per_fragment']['median']:.1f} vs "
                f"{row['numba_fwd_cycles_per_fragment']['median']:.1f}, bwd "
@@ -366,7 +373,8 @@ def run_kernels(repeats, quick, json_path, plot_path) -> int:
               f"x{sp['median']:.2f} ({sp['min']:.2f}-{sp['max']:.2f}); whole call "
               f"x{row['speedup_call_cpu']['median']:.2f} ({row['speedup_call_cpu']['min']:.2f}-"
               f"{row['speedup_call_cpu']['max']:.2f}){cyc}; C T1/(2 T2) median "
-              f"{row['simd_efficiency_2t']['median']:.2f}")
+              f"{row['simd_efficiency_2t']['median']:.2f} (CPU time 2 threads / 1: "
+              f"{row['simd_cpu_2t_over_1t']['median']:.2f})")
     save_json(json_path, {"clock_mhz": mhz, "isa": cs.isa(), "repeats": repeats, "rows": rows},
               ", one thread unless stated, C vs numba kernels alternated")
     if plot_path:
