@@ -295,7 +295,14 @@ static inline __attribute__((always_inline)) void SUF(forward_impl)(const job_t 
                     v8f sigma = half * (a * dx * dx + cdy) + b * dx * dy;
                     v8i dn = *(v8iu *)(done + base);
                     v8i m = (lane_i <= hi) & ~dn & (sigma >= zero) & (sigma <= smax);
-                    v8f e = SUF(exp_neg)(sigma);  /* every group: a branch on empty groups mispredicts */
+                    if (!SUF(lanes)(m)) {  /* nothing to composite: no exp (most groups on dense scenes) */
+                        if (fe) {
+                            *(v8fu *)fe = zero;
+                            fe += 8;
+                        }
+                        continue;
+                    }
+                    v8f e = SUF(exp_neg)(sigma);
                     v8f raw = o * e;
                     v8f alpha = SUF(sel)(raw < amax, raw, amax);
                     m &= alpha >= amin;
@@ -405,6 +412,7 @@ static inline __attribute__((always_inline)) void SUF(backward_impl)(const job_t
                     e = *(const v8fu *)fe;
                     fe += 8;
                     m = e != zero;
+                    if (!SUF(lanes)(m)) continue;
                 } else {
                     v8f sigma = half * (a * dx * dx + cdy) + b * dx * dy;
                     m = (lane_i <= hi) & (kk < *(v8iu *)(stop + base)) & (sigma >= zero) & (sigma <= smax);
