@@ -1,9 +1,10 @@
 /* The `cpu` backend's tile kernels in C with 8-lane SIMD (float32): see ev3dgs/splat/cpu_simd.py.
  *
  * The kernel body (after the #else at the end of this file) is compiled twice by including this file into
- * itself: once for AVX2 (`#pragma GCC target("avx2")`, 256-bit ymm registers) and once for the baseline of
- * the compiler's target (SSE2 on x86_64, where GCC splits each 8-lane operation into two xmm ones); the
- * AVX2 build is chosen at run time with __builtin_cpu_supports. Compiled with -ffp-contract=off and no FMA,
+ * itself: on x86 once for AVX2 (every function with __attribute__((target("avx2"))), 256-bit ymm registers)
+ * and everywhere once for the baseline of the compiler's target (SSE2 on x86_64, where the compiler splits
+ * each 8-lane operation into two xmm ones; NEON on aarch64); the AVX2 build is chosen at run time with
+ * __builtin_cpu_supports. Compiled with -ffp-contract=off and no FMA,
  * every lane does the same IEEE float32 operations in the same order in both builds, so the two give
  * bitwise the same results (tested), and the per-pixel sigma, alpha and transmittance are bitwise those of
  * the numba kernel: only exp(-sigma) differs (exp_neg below, relative error <= 2^-22 against ~2^-24 for the
@@ -56,19 +57,25 @@ typedef struct {
 typedef void (*tile_fn)(const job_t *, int64_t);
 
 #define RASTER_BODY 1
-#pragma GCC push_options
-#pragma GCC target("avx2")
+#if defined(__x86_64__) || defined(__i386__)
+#define X86 1
 #define SUF(name) name##_avx2
 #define HAVE_AVX 1
+#define TARGET __attribute__((target("avx2")))   /* GCC and clang; every function of the AVX2 build */
 #include "_raster.c"
 #undef SUF
 #undef HAVE_AVX
-#pragma GCC pop_options
+#undef TARGET
+#else
+#define X86 0
+#endif
 #define SUF(name) name##_portable
 #define HAVE_AVX 0
+#define TARGET
 #include "_raster.c"
 #undef SUF
 #undef HAVE_AVX
+#undef TARGET
 
 static int cpu_avx2(void)
 {
@@ -85,6 +92,12 @@ int ev3dgs_raster_isa(int64_t want)
     if (want == 0) return 0;
     return cpu_avx2() ? 1 : 0;
 }
+
+#if X86
+#define PICK(name) (ev3dgs_raster_isa(job->isa) ? name##_avx2 : name##_portable)
+#else
+#define PICK(name) name##_portable
+#endif
 
 typedef struct {
     const job_t *job;
@@ -137,19 +150,26 @@ static int run(job_t *job, tile_fn fn)
 int ev3dgs_raster_forward(job_t *job)
 {
     if (job->D < 1 || job->D > DMAX) return -1;
-    return run(job, ev3dgs_raster_isa(job->isa) ? forward_tile_avx2 : forward_tile_portable);
+    return run(job, PICK(forward_tile));
 }
 
 int ev3dgs_raster_backward(job_t *job)
 {
     if (job->D < 1 || job->D > DMAX) return -1;
-    return run(job, ev3dgs_raster_isa(job->isa) ? backward_tile_avx2 : backward_tile_portable);
+    return run(job, PICK(backward_tile));
 }
 
 void ev3dgs_exp_neg(const float *s, float *out, int64_t n, int64_t isa)
 {
-    if (ev3dgs_raster_isa(isa)) exp_neg_array_avx2(s, out, n);
-    else exp_neg_array_portable(s, out, n);
+#if X86
+    if (ev3dgs_raster_isa(isa)) {
+        exp_neg_array_avx2(s, out, n);
+        return;
+    }
+#else
+    (void)isa;
+#endif
+    exp_neg_array_portable(s, out, n);
 }
 
 static PyMethodDef methods[] = {{NULL, NULL, 0, NULL}};
@@ -160,18 +180,21 @@ PyMODINIT_FUNC PyInit__raster(void) { return PyModule_Create(&module); }
 
 #else /* ------------------------------------------------------------------ kernel body, built twice -- */
 
-static inline v8f SUF(bcast)(float x) { return (v8f){x, x, x, x, x, x, x, x}; }
-static inline v8i SUF(ibcast)(int32_t x) { return (v8i){x, x, x, x, x, x, x, x}; }
+static inline TARGET v8f SUF(bcast)(float x) { return (v8f){x, x, x, x, x, x, x, x}; }
+static inline TARGET v8i SUF(ibcast)(int32_t x) { return (v8i){x, x, x, x, x, x, x, x}; }
 /* a where m (all bits set), else b */
 #if HAVE_AVX
-static inline v8f SUF(sel)(v8i m, v8f a, v8f b) { return __builtin_ia32_blendvps256(b, a, (v8f)m); }
-static inline v8i SUF(seli)(v8i m, v8i a, v8i b) { return (v8i)__builtin_ia32_blendvps256((v8f)b, (v8f)a, (v8f)m); }
+static inline TARGET v8f SUF(sel)(v8i m, v8f a, v8f b) { return __builtin_ia32_blendvps256(b, a, (v8f)m); }
+static inline TARGET v8i SUF(seli)(v8i m, v8i a, v8i b)
+{
+    return (v8i)__builtin_ia32_blendvps256((v8f)b, (v8f)a, (v8f)m);
+}
 #else
-static inline v8f SUF(sel)(v8i m, v8f a, v8f b) { return (v8f)((m & (v8i)a) | (~m & (v8i)b)); }
-static inline v8i SUF(seli)(v8i m, v8i a, v8i b) { return (m & a) | (~m & b); }
+static inline TARGET v8f SUF(sel)(v8i m, v8f a, v8f b) { return (v8f)((m & (v8i)a) | (~m & (v8i)b)); }
+static inline TARGET v8i SUF(seli)(v8i m, v8i a, v8i b) { return (m & a) | (~m & b); }
 #endif
 
-static inline int SUF(lanes)(v8i m)  /* bit i set: lane i's mask is set */
+static inline TARGET int SUF(lanes)(v8i m)  /* bit i set: lane i's mask is set */
 {
 #if HAVE_AVX
     return __builtin_ia32_movmskps256((v8f)m);
@@ -186,7 +209,7 @@ static inline int SUF(lanes)(v8i m)  /* bit i set: lane i's mask is set */
    x = -s = n ln2 + f with n = round(x / ln2) (the 1.5 * 2^23 shifter), f by Cody-Waite's two-part ln2
    (C1 has 9 significant bits: n C1 is exact), exp(f) = 1 + f + f^2 P(f) with Cephes' expf minimax
    coefficients on |f| <= ln2 / 2, times 2^n built in the exponent bits. */
-static inline v8f SUF(exp_neg)(v8f s)
+static inline TARGET v8f SUF(exp_neg)(v8f s)
 {
     v8f x = -s;
     x = SUF(sel)(x < SUF(bcast)(-87.0f), SUF(bcast)(-87.0f), x);
@@ -205,7 +228,7 @@ static inline v8f SUF(exp_neg)(v8f s)
     return y * pow2;
 }
 
-static void SUF(exp_neg_array)(const float *s, float *out, int64_t n)
+static TARGET void SUF(exp_neg_array)(const float *s, float *out, int64_t n)
 {
     int64_t i = 0;
     for (; i + 8 <= n; i += 8) *(v8fu *)(out + i) = SUF(exp_neg)(*(const v8fu *)(s + i));
@@ -253,10 +276,11 @@ static void SUF(exp_neg_array)(const float *s, float *out, int64_t n)
         }                                                                                           \
     }
 
-/* Per tile: entries in depth order; per box row and group of 8 pixels (tile columns 0-7, 8-15) all lanes at
-   once, the same rules as cpu._forward, branch free: a lane composites when it is inside the box, its pixel
+/* Per tile: entries in depth order; per box row and group of 8 pixels (from the box's first column) all lanes
+   at once, the same rules as cpu._forward, with masks: a lane composites when it is inside the box, its pixel
    not done, 0 <= sigma <= sigma_max, alpha >= 1/255 and T (1 - alpha) >= 1e-4 (below: the pixel is done). */
-static inline __attribute__((always_inline)) void SUF(forward_impl)(const job_t *job, int64_t gt, const int64_t D)
+static inline __attribute__((always_inline)) TARGET void SUF(forward_impl)(const job_t *job, int64_t gt,
+                                                                          const int64_t D)
 {
     TILE_GEOMETRY
     const v8f half = SUF(bcast)(0.5f), one = SUF(bcast)(1.0f), amax = SUF(bcast)(0.99f);
@@ -344,7 +368,8 @@ static inline __attribute__((always_inline)) void SUF(forward_impl)(const job_t 
         }
 }
 
-static inline float SUF(hsum)(v8f v)  /* lanes summed in a fixed order: a tree, ((0+4)+(2+6))+((1+5)+(3+7)) */
+/* lanes summed in a fixed order: a tree, ((0 + 4) + (2 + 6)) + ((1 + 5) + (3 + 7)) */
+static inline TARGET float SUF(hsum)(v8f v)
 {
     v4f lo = {v[0], v[1], v[2], v[3]}, hi = {v[4], v[5], v[6], v[7]};
     v4f s = lo + hi;
@@ -355,7 +380,7 @@ static inline float SUF(hsum)(v8f v)  /* lanes summed in a fixed order: a tree, 
    fragment where the recorded exp(-sigma) is not 0 (replay) or where the forward's tests pass for an entry
    before the pixel's stop (recompute: the same set, the same e, so bitwise the same gradients). The
    gradients of cpu_backward._fragment_grad per lane, summed per entry over the lanes in a fixed order. */
-static inline __attribute__((always_inline)) void SUF(backward_impl)(const job_t *job, int64_t gt,
+static inline __attribute__((always_inline)) TARGET void SUF(backward_impl)(const job_t *job, int64_t gt,
                                                                     const int64_t D)
 {
     TILE_GEOMETRY
@@ -467,13 +492,13 @@ static inline __attribute__((always_inline)) void SUF(backward_impl)(const job_t
 
 
 /* D = 3 (RGB) compiled with the channel count known, every other D through the general loop */
-static void SUF(forward_tile)(const job_t *job, int64_t gt)
+static TARGET void SUF(forward_tile)(const job_t *job, int64_t gt)
 {
     if (job->D == 3) SUF(forward_impl)(job, gt, 3);
     else SUF(forward_impl)(job, gt, job->D);
 }
 
-static void SUF(backward_tile)(const job_t *job, int64_t gt)
+static TARGET void SUF(backward_tile)(const job_t *job, int64_t gt)
 {
     if (job->D == 3) SUF(backward_impl)(job, gt, 3);
     else SUF(backward_impl)(job, gt, job->D);
