@@ -3,8 +3,9 @@
 Same tiles, entries, rules and work list as the numba kernels in cpu.py / cpu_backward.py, but per tile-list
 entry and row of its (tile-clipped) pixel box, the pixels run 8 at a time in SIMD lanes (columns x0 ... x0 + 7
 from the box's first column x0, then x0 + 8 ...; no per-row span solve: the lanes' sigma test decides),
-branch free with per-lane masks (inside the box, pixel not done, 0 <= sigma <= sigma_max,
-alpha >= 1/255, T (1 - alpha) >= 1e-4), on structure-of-arrays tile state (T, each colour channel, stop,
+with per-lane masks instead of branches (inside the box, pixel not done, 0 <= sigma <= sigma_max,
+alpha >= 1/255, T (1 - alpha) >= 1e-4; one branch skips a group whose mask is empty before its exp: 74 %
+of the groups on a dense 346x260 scene), on structure-of-arrays tile state (T, each colour channel, stop,
 done). The forward records exp(-sigma) densely per (box row, lane group) slot, 0 where it composited
 nothing, so the backward replays the same lanes with masks (no exp, no tests); over the fragment budget
 it recomputes them with the same exp and tests (bitwise the same gradients). Gradients are accumulated per
