@@ -5,8 +5,8 @@ the numba fallback when the extension is absent.
 Tolerances (u = 2^-24, float32's unit roundoff), first-order error propagation:
 
 * alpha. The C kernel's sigma, alpha, T and compositing are the numba kernel's float32 operations in the same
-  order; only exp(-sigma) differs: ours within EXP_REL_ERROR = 4u (cpu_simd's derivation, checked below),
-  libm's expf within 1 ulp <= 2u, so the two alphas differ by delta <= 6u relative. Against `reference`
+  order (the backward's (colour behind) . G aside: below); exp(-sigma) differs: ours within
+  EXP_REL_ERROR = 4u (cpu_simd's derivation, checked below), libm's expf within 1 ulp <= 2u, so the two alphas differ by delta <= 6u relative. Against `reference`
   (float64 on the same float32 inputs) the kernel's sigma also carries rounding: dx, dy, 3 products and 2
   sums, <= 8u relative to 0.5 (|a| dx^2 + |c| dy^2) + |b dx dy| <= kappa sigma, kappa = (1 + rho) / (1 - rho),
   rho = |b| / sqrt(ac); so |d sigma| <= 8u kappa smax and delta <= (8 kappa smax + 4 + 1 + 1) u.
@@ -23,7 +23,8 @@ Tolerances (u = 2^-24, float32's unit roundoff), first-order error propagation:
   alpha (<= 1 / (1 - amax)) multiplies the transmittance error, so a term moves by <= (GROWTH + 1)(1 + 1 /
   (1 - amax)) delta relative. A Gaussian's n fragments are summed in float32 (per tile and then over its tiles,
   in lanes or in sequence), within 2 n u of the sum of their absolute values for each of the two kernels:
-  tol = ((GROWTH + 1)(1 + 1 / (1 - amax)) delta + 4 n u) sum |term|.
+  tol = ((GROWTH + 1)(1 + 1 / (1 - amax)) delta + 4 n u) sum |term|; plus 2 L u / (1 - amax) relative for the
+  C backward's running sum of (colour behind) . G over the L fragments behind a pixel.
 A fragment whose alpha lies within delta of 1/255 (or T within delta of 1e-4) may be composited by one and
 not the other; the scenes here have none (a flip would exceed the image bound).
 """
@@ -171,7 +172,9 @@ def check(got, want, x, W, H, bg, delta, compositing):
     terms, count = abs_terms(x, W, H, bg)
     # + 16 u against float64: a term's own float32 roundings (at most ~12 operations from the stored alpha,
     # T and S to the product, each relative to the absolute evaluation)
-    rel = (gr + 1) * (1 + 1 / (1 - amax)) * delta + own + (16 * U if compositing else 0.0)
+    # + 2 L u / (1 - amax): the C backward keeps (colour behind) . G as one running sum over the <= L fragments
+    # behind (the numba kernel per channel), each addition within u of the absolute evaluation, times 1/(1-a)
+    rel = (gr + 1) * (1 + 1 / (1 - amax)) * delta + own + (16 * U if compositing else 0.0) + 2 * L * U / (1 - amax)
     for i, name in enumerate(["means2d", "conics", "colors", "opacities"]):
         # each term within rel of the other's; a float32 sum of n terms within 2 n u of their absolute sum
         # (both orders); + 1e-30 for Gaussians without fragments (both 0)

@@ -8,7 +8,8 @@
  * every lane does the same IEEE float32 operations in the same order in both builds, so the two give
  * bitwise the same results (tested), and the per-pixel sigma, alpha and transmittance are bitwise those of
  * the numba kernel: only exp(-sigma) differs (exp_neg below, relative error <= 2^-22 against ~2^-24 for the
- * library's expf) and the order in which a Gaussian's per-pixel gradients are summed (8 lane accumulators).
+ * library's expf), the order in which a Gaussian's per-pixel gradients are summed (8 lane accumulators) and
+ * the backward's (colour behind) . G, one running sum instead of one colour behind per channel.
  */
 #ifndef RASTER_BODY
 #define PY_SSIZE_T_CLEAN
@@ -386,27 +387,26 @@ static inline __attribute__((always_inline)) TARGET void SUF(backward_impl)(cons
     TILE_GEOMETRY
     const v8f half = SUF(bcast)(0.5f), one = SUF(bcast)(1.0f), amax = SUF(bcast)(0.99f);
     const v8f amin = SUF(bcast)((float)(1.0 / 255.0)), zero = SUF(bcast)(0.0f);
-    _Alignas(32) float T[NPIX + PAD], GA[NPIX + PAD], TF[NPIX + PAD];
-    _Alignas(32) float S[DMAX * NPIX + PAD], G[DMAX * NPIX + PAD];
+    _Alignas(32) float T[NPIX + PAD], GAT[NPIX + PAD], SG[NPIX + PAD];
+    _Alignas(32) float G[DMAX * NPIX + PAD];
     _Alignas(32) int32_t stop[NPIX + PAD];
     int64_t start = job->offsets[gt], end = job->offsets[gt + 1], kmax = start;
     for (int p = 0; p < NPIX + PAD; p++) {
-        T[p] = GA[p] = TF[p] = 0.0f;
+        T[p] = GAT[p] = SG[p] = 0.0f;
         stop[p] = 0;
     }
-    memset(S, 0, sizeof(float) * (size_t)(D * NPIX + PAD));
     memset(G, 0, sizeof(float) * (size_t)(D * NPIX + PAD));
     for (int64_t ly = 0; ly < h; ly++)
         for (int64_t lx = 0; lx < w; lx++) {
             int64_t p = ly * TILE + lx, pix = (cam * job->height + y0 + ly) * job->width + x0 + lx;
-            T[p] = TF[p] = job->t_final[pix];
+            T[p] = job->t_final[pix];
             int64_t s = job->last[pix];
             stop[p] = s > start ? (int32_t)(s - start) : 0;
             if (s > kmax) kmax = s;
-            GA[p] = job->grad_alpha[pix];
+            GAT[p] = job->grad_alpha[pix] * T[p];
             for (int64_t d = 0; d < D; d++) {
                 G[d * NPIX + p] = job->grad_image[pix * D + d];
-                S[d * NPIX + p] = T[p] * job->background[d];
+                SG[p] = SG[p] + T[p] * job->background[d] * G[d * NPIX + p];
             }
         }
     if (kmax > end) kmax = end;
@@ -454,21 +454,20 @@ static inline __attribute__((always_inline)) TARGET void SUF(backward_impl)(cons
                 v8f t = *(v8fu *)(T + base);
                 v8f ti = t * inv;
                 v8f wgt = alpha * ti;
-                v8f cg = zero, sg = zero;
-                /* lanes without a fragment have e = alpha = wgt = 0 and inv = 1: their T and S stay as they
+                v8f cg = zero;
+                /* lanes without a fragment have e = alpha = wgt = 0 and inv = 1: their T and SG stay as they
                    are and they add +-0 to every accumulator (finite inputs) */
                 for (int64_t d = 0; d < D; d++) {
                     v8f gd = *(v8fu *)(G + d * NPIX + base);
-                    v8fu *sd = (v8fu *)(S + d * NPIX + base);
                     gcol[d] += wgt * gd;
                     cg = cg + col[d] * gd;
-                    sg = sg + *sd * gd;
                 }
-                v8f d_alpha = ti * cg - (sg - *(v8fu *)(GA + base) * *(v8fu *)(TF + base)) * inv;
-                for (int64_t d = 0; d < D; d++) {
-                    v8fu *sd = (v8fu *)(S + d * NPIX + base);
-                    *sd = *sd + col[d] * wgt;
-                }
+                /* SG = (colour behind) . G, kept as one sum: the colour behind grows by colour * wgt, so its
+                   product with G grows by cg * wgt (no per-channel colour behind) */
+                v8fu *sgp = (v8fu *)(SG + base);
+                v8f sg = *sgp;
+                v8f d_alpha = ti * cg - (sg - *(v8fu *)(GAT + base)) * inv;
+                *sgp = sg + cg * wgt;
                 *(v8fu *)(T + base) = ti;
                 v8i gm = m & ~(raw > amax);     /* clamped alpha: no gradient to opacity or footprint */
                 v8f d_sigma = -d_alpha * SUF(sel)(gm, alpha, zero);

@@ -21,7 +21,7 @@ compiler's baseline (SSE2 on x86_64: each operation on two xmm halves), chosen a
 same results (tested).
 
 Exactness. sigma, alpha, the transmittance and the compositing are the numba kernel's float32 operations
-in its order, so only two things differ from it:
+in its order, so only three things differ from it:
 
 * exp(-sigma) comes from a polynomial (`EXP_REL_ERROR`): x = -sigma = n ln2 + f, n = round(x / ln2),
   f = (x - n C1) - n C2 with Cody-Waite's split ln2 = C1 + C2 (C1 = 0.693359375 has 9 significant bits, so
@@ -40,6 +40,9 @@ in its order, so only two things differ from it:
   2e7-point sweep). libm's float32 exp (the numba kernels') is within about 1 u, so the two kernels'
   alphas differ by at most ~5 u relative.
 * the order of a Gaussian's gradient sum: per lane, then the 8 lanes (numba: fragment by fragment).
+* the backward keeps the dot product of the colour behind a fragment with the pixel's image gradient as one
+  running sum (it grows by (colour . G) * weight per fragment) instead of the colour behind per channel:
+  D - 1 fewer loads, stores and products per lane group, a different rounding.
 
 Both are tolerances in tests/test_splat_simd.py, derived there. Fragments whose sigma or alpha lie within
 a few u of a cut-off may be composited by one kernel and not the other (as between the numba kernel and
