@@ -9,7 +9,8 @@ Tolerances (u = 2^-24, float32's unit roundoff), first-order error propagation:
   EXP_REL_ERROR = 4u (cpu_simd's derivation, checked below), libm's expf within 1 ulp <= 2u, so the two
   alphas differ by delta <= 6u relative. Against `reference` (float64 on the same float32 inputs) the
   kernel's sigma also carries rounding: dx, dy, 3 products and 2 sums, <= 8u relative to
-  0.5 (|a| dx^2 + |c| dy^2) + |b dx dy| <= kappa sigma, kappa = (1 + rho) / (1 - rho), rho = |b| / sqrt(ac); so |d sigma| <= 8u kappa smax and delta <= (8 kappa smax + 4 + 1 + 1) u.
+  0.5 (|a| dx^2 + |c| dy^2) + |b dx dy| <= kappa sigma, kappa = (1 + rho) / (1 - rho), rho = |b| / sqrt(ac);
+  so |d sigma| <= 8u kappa smax and delta <= (8 kappa smax + 4 + 1 + 1) u.
 * transmittance. A pixel's T = prod (1 - alpha_i); a relative change delta of every alpha moves it by
   sum_i alpha_i / (1 - alpha_i) delta. With alpha <= amax: alpha / (1 - alpha) <= g(amax) (-ln(1 - alpha)),
   g(a) = a / ((1 - a)(-ln(1 - a))) increasing, and sum_i -ln(1 - alpha_i) = -ln T >= ... <= ln(1e4) (T stays
