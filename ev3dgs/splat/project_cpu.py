@@ -137,9 +137,11 @@ def _finite_row(means, quats, scales, opac, n):
 def _inputs(means, quats, scales, n, finite):
     """The row's (sanitised) mean, normalised quaternion (and 1/|q|, |q|^2) and scales."""
     if finite:
-        px, py, pz = means[n, 0], means[n, 1], means[n, 2]
-        qw, qx, qy, qz = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
-        sx, sy, sz = scales[n, 0], scales[n, 1], scales[n, 2]
+        # read as float64 whatever the arrays' dtype (float32 inputs: exact), so the maths is float64
+        px, py, pz = np.float64(means[n, 0]), np.float64(means[n, 1]), np.float64(means[n, 2])
+        qw, qx = np.float64(quats[n, 0]), np.float64(quats[n, 1])
+        qy, qz = np.float64(quats[n, 2]), np.float64(quats[n, 3])
+        sx, sy, sz = np.float64(scales[n, 0]), np.float64(scales[n, 1]), np.float64(scales[n, 2])
     else:
         px = py = pz = 0.0
         qw = qx = qy = qz = 1.0
@@ -213,7 +215,7 @@ def _project_forward(means, quats, scales, opac, sh, deg, vm, campos, cam, width
         finite = _finite_row(means, quats, scales, opac, n)
         px, py, pz, qw, qx, qy, qz, inv, sq, sx, sy, sz = _inputs(means, quats, scales, n, finite)
         _, _, S = _sigma(qw, qx, qy, qz, inv, sx, sy, sz)
-        o = opac[n] if finite else 1.0
+        o = np.float64(opac[n]) if finite else 1.0
         for c in range(C):
             fx, fy = cam[c, 0], cam[c, 1]
             x, y, zr, valid, z, xz, yz, cxz, cyz = _camera(vm, c, px, py, pz, cam, near, far, finite)
@@ -250,7 +252,7 @@ def _project_forward(means, quats, scales, opac, sh, deg, vm, campos, cam, width
                 for ch in range(3):
                     acc = 0.0
                     for k in range(K):
-                        acc += basis[k] * sh[n, k, ch]
+                        acc += basis[k] * np.float64(sh[n, k, ch])
                     colors[c, n, ch] = max(acc + 0.5, 0.0)
 
 
@@ -289,7 +291,7 @@ def _project_backward(means, quats, scales, opac, sh, deg, vm, campos, cam, near
                 c11, c12, c22 = _cov2d(t0, t1, S, eps2d)
                 det_raw = c11 * c22 - c12 * c12
                 det = max(det_raw, 1e-12)
-                ga, gbb, gc = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
+                ga, gbb, gc = np.float64(g_con[c, n, 0]), np.float64(g_con[c, n, 1]), np.float64(g_con[c, n, 2])
                 # conic = (c22, -c12, c11) / det
                 g11 = gc / det
                 g12 = -gbb / det
@@ -322,8 +324,8 @@ def _project_backward(means, quats, scales, opac, sh, deg, vm, campos, cam, near
                 gtx = -fx * rz * rz * gj02
                 gty = -fy * rz * rz * gj12
                 gz = -grz * rz * rz + gtx * cxz + gty * cyz
-                gxz = fx * g_m2d[c, n, 0]
-                gyz = fy * g_m2d[c, n, 1]
+                gxz = fx * np.float64(g_m2d[c, n, 0])
+                gyz = fy * np.float64(g_m2d[c, n, 1])
                 if xz > -cam[c, 4] and xz < cam[c, 5]:
                     gxz += gtx * z
                 if yz > -cam[c, 6] and yz < cam[c, 7]:
@@ -331,7 +333,7 @@ def _project_backward(means, quats, scales, opac, sh, deg, vm, campos, cam, near
                 gx = gxz / z
                 gy = gyz / z
                 gz -= (gxz * x + gyz * y) / (z * z)
-                gzr = g_dep[c, n] + (gz if valid else 0.0)
+                gzr = np.float64(g_dep[c, n]) + (gz if valid else 0.0)
                 # (gx, gy, gzr) = dL/d(camera point t); t = W p + tw
                 for i in range(3):
                     g = vm[c, 0, i] * gx + vm[c, 1, i] * gy + vm[c, 2, i] * gzr
@@ -364,12 +366,12 @@ def _project_backward(means, quats, scales, opac, sh, deg, vm, campos, cam, near
                     for ch in range(3):
                         acc = 0.0
                         for k in range(K):
-                            acc += basis[k] * sh[n, k, ch]
+                            acc += basis[k] * np.float64(sh[n, k, ch])
                         if acc + 0.5 >= 0.0:
-                            gcol = g_col[c, n, ch]
+                            gcol = np.float64(g_col[c, n, ch])
                             for k in range(K):
                                 g_sh[n, k, ch] += basis[k] * gcol
-                                gb[k] += sh[n, k, ch] * gcol
+                                gb[k] += np.float64(sh[n, k, ch]) * gcol
                     gux, guy, guz = _sh_basis_vjp(deg, ux, uy, uz, gb)
                     # d = p - campos: dL/dd is dL/dp's SH part and minus dL/dcampos
                     gdx, gdy, gdz = gux * di, guy * di, guz * di
@@ -425,6 +427,20 @@ def _f64(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
 
 
+def _in(t: torch.Tensor) -> np.ndarray:
+    """A kernel input as a contiguous array, float32 and float64 as they are (the kernels read every element
+    as float64, exactly, so the results are those of a float64 copy without making one), others as float64."""
+    a = t.detach().cpu().numpy()
+    return np.ascontiguousarray(a if a.dtype in (np.float32, np.float64) else a.astype(np.float64))
+
+
+def _out_dtype(dtype: torch.dtype):
+    """The numpy dtype the forward kernel writes its outputs in: the tensors' own for float32 (a float64
+    result stored as float32 rounds to nearest, exactly as the ``.to(float32)`` of a float64 array would),
+    else float64 (converted after)."""
+    return np.float32 if dtype == torch.float32 else np.float64
+
+
 def inv4(vm: np.ndarray) -> np.ndarray:
     """Inverse of (..., 4, 4) float64 view matrices through torch (as the torch path's ``torch.linalg.inv``),
     not numpy: numpy's bundled OpenBLAS wakes its thread pool for even a 4x4 ``np.linalg.inv``, and the woken
@@ -451,16 +467,17 @@ class _ProjectCPU(torch.autograd.Function):
         from .cpu import _parallel
 
         dtype = means.dtype
-        m, q, s = _f64(means), _f64(quats), _f64(scales)
-        o = _f64(opacities)
-        shc = _f64(sh) if deg >= 0 else np.zeros((len(m), 1, 3))
+        m, q, s = _in(means), _in(quats), _in(scales)
+        o = _in(opacities)
+        shc = _in(sh) if deg >= 0 else np.zeros((len(m), 1, 3))
         vm = _f64(viewmats)
         cam, campos = camera_table(vm, _f64(K), width, height)
         C, N = vm.shape[0], m.shape[0]
         # opacity below 1/255 is compared in the opacities' dtype, like the rasterizer's skip test
         amin = float(torch.tensor(ALPHA_MIN, dtype=opacities.dtype))
-        means2d, conics = np.empty((C, N, 2)), np.empty((C, N, 3))
-        depths, colors = np.empty((C, N)), np.empty((C, N, 3))
+        odt = _out_dtype(dtype)
+        means2d, conics = np.empty((C, N, 2), odt), np.empty((C, N, 3), odt)
+        depths, colors = np.empty((C, N), odt), np.empty((C, N, 3), odt)
         radii = np.empty((C, N), np.int32)
         _parallel(_project_forward, m, q, s, o, shc, deg, vm, campos, cam, width, height, near, far, eps2d, amin,
                   means2d, conics, depths, colors, radii)
@@ -481,7 +498,7 @@ class _ProjectCPU(torch.autograd.Function):
         C, N = vm.shape[0], m.shape[0]
 
         def arr(g, shape):
-            return np.zeros(shape) if g is None else _f64(g)
+            return np.zeros(shape) if g is None else _in(g)
 
         gm2d, gcon = arr(g_m2d, (C, N, 2)), arr(g_con, (C, N, 3))
         gdep, gcol = arr(g_dep, (C, N)), arr(g_col, (C, N, 3))
