@@ -281,7 +281,8 @@ def plot(st: dict, path: str) -> None:
     parts = [("composited", st["composited"]), ("below 1/255", round(st["share_below_cut"] * visited)),
              ("behind T<1e-4", round(st["share_behind"] * visited)),
              ("after tile done (not visited)", st["skipped_after_tile_done"]),
-             ("box outside ellipse (not visited)", st["box_pixels"] - st["box_pixels_in_ellipse"])]
+             ("rest of the boxes (outside the spans)",
+              max(0, st["box_pixels"] - visited - st["skipped_after_tile_done"]))]
     left = 0
     for (name, v), colour in zip(parts, ("tab:green", "tab:orange", "tab:red", "tab:gray", "lightgray")):
         ax[0].barh([0], [v / 1e6], left=left / 1e6, color=colour, label=f"{name}: {v / 1e6:.2f} M")
