@@ -63,3 +63,16 @@ def test_float64_inputs_stay_float64(deg):
                                                         sh_degree=deg)
     assert m2d.dtype == conics.dtype == depths.dtype == torch.float64
     assert (colors is None) == (deg is None) and (colors is None or colors.dtype == torch.float64)
+
+
+def test_an_input_changed_in_place_before_the_backward_is_an_error():
+    """The kernels read the float32 inputs without copying them: a parameter changed in place between the
+    forward and the backward must not silently give gradients at the changed values."""
+    means, quats, scales, opac, sh, vms, K = _inputs(1, 20, 1, 1)
+    means.requires_grad_(True)
+    leaf = means
+    m2d, _, _, _, _ = project_sh_cpu(leaf, quats, scales, opac, sh, vms, K, 64, 48, sh_degree=1)
+    with torch.no_grad():
+        leaf.add_(0.01)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        m2d.sum().backward()

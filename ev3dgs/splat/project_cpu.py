@@ -482,6 +482,9 @@ class _ProjectCPU(torch.autograd.Function):
         _parallel(_project_forward, m, q, s, o, shc, deg, vm, campos, cam, width, height, near, far, eps2d, amin,
                   means2d, conics, depths, colors, radii)
         ctx.arrays = (m, q, s, o, shc, vm, campos, cam)
+        # the float32 arrays above share memory with the inputs (no copies): saved through autograd so that an
+        # in-place change of an input before the backward is an error, not a gradient at the changed values
+        ctx.save_for_backward(means, quats, scales, opacities, sh)
         ctx.vm_dtype = viewmats.dtype
         ctx.consts = (deg, near, far, eps2d, dtype, tuple(sh.shape))
         out = [torch.from_numpy(a).to(dtype) for a in (means2d, conics, depths, colors)]
@@ -493,6 +496,7 @@ class _ProjectCPU(torch.autograd.Function):
     def backward(ctx, g_m2d, g_con, g_dep, g_col, _g_radii):
         from .cpu import _parallel
 
+        ctx.saved_tensors  # noqa: B018  (raises if an input was changed in place since the forward)
         m, q, s, o, shc, vm, campos, cam = ctx.arrays
         deg, near, far, eps2d, dtype, sh_shape = ctx.consts
         C, N = vm.shape[0], m.shape[0]
