@@ -17,7 +17,6 @@ the two trees trained bitwise the same model (the change did not alter any resul
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import subprocess
