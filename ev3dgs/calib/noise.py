@@ -36,6 +36,7 @@ HOT_FACTOR = 5.0
 NB_FACTOR = 3.0          # ... and this many times its neighbours' count in the same pairs
 MIN_PAIRS_HOT = 6        # hot pixels are looked for in recordings with at least this many frame pairs
 MIN_QUIET = 2            # a pixel needs this many quiet frame pairs to be judged hot or not
+STILL_SHARE = 0.75        # a quiet pair changes by at most this share of the smaller threshold (+ 2 noise s.d.)
 MIN_SHOT_EVENTS = 5
 
 
@@ -92,9 +93,11 @@ def hot_pixels(rec: Recording, on, off, T: float, curve: tuple[float, float], c_
     """(mask of hot pixels, list of (x, y, rate Hz)): pixels whose events do not follow the APS signal.
 
     A hot pixel fires at its own steady rate whatever the scene does, so it is judged on its quiet frame pairs
-    only: pairs in which neither it nor any of its 8 neighbours changes by more than a quarter of the smaller
-    threshold (plus 2 frame-noise standard deviations), and neither do the pairs before and after (a
-    turning point of the motion inside a pair shows there). In those pairs a pixel is hot when
+    only: pairs in which neither it nor any of its 8 neighbours changes by more than STILL_SHARE (3/4) of the
+    smaller threshold (plus 2 frame-noise standard deviations), and neither do the pairs before and after (a
+    turning point of the motion inside a pair shows there): at most about one signal event per pair, which
+    the signal term below counts (a quarter of a threshold, with the frame noise measured right, left a
+    texture shaking at the frame rate 2 quiet pairs in 24 per pixel). In those pairs a pixel is hot when
       * its count exceeds what the background (the static pixels' quiet-pair rate) and the APS-predicted
         signal (sum (|dL| - 2 s.d.) / C over its quiet pairs) explain, beyond the 1e-3 / P Poisson tail and
         by HOT_FACTOR;
@@ -123,7 +126,7 @@ def hot_pixels(rec: Recording, on, off, T: float, curve: tuple[float, float], c_
     sd = np.sqrt(rel[1:] ** 2 + rel[:-1] ** 2)
     c_min = min(c_on, c_off)
     v = valid[1:] & valid[:-1]
-    still = v & (np.abs(dL) <= 0.25 * c_min + 2 * sd)
+    still = v & (np.abs(dL) <= STILL_SHARE * c_min + 2 * sd)
     K = len(dL)
     s3 = still.reshape(K, H, W)
     pad = np.pad(s3, ((0, 0), (1, 1), (1, 1)), constant_values=True)

@@ -8,6 +8,9 @@ The scene (W x H, default 64 x 48):
     frame intervals per pixel: the threshold fit);
   * a FLASH patch at the bottom of the moving part: steps between 0.01 and 0.9 within one internal step
     (1 ms) every 100 ms, whose events come in refractory-limited bursts (the refractory period).
+With moving=True (a moving camera: no pixel sees a static scene) the texture covers the static columns too,
+except a flat FLAT patch at the top left (a white wall, the sky: flat regions stay unchanged however the camera
+moves); the flash patch stays.
 APS frames: the linear intensity averaged over each exposure, DN = dark + (255 - dark) I + Gaussian read noise
 and photon noise, rounded to uint8 (GRAY). Hot pixels: Poisson events at `hot_hz` added at `hot` pixels.
 """
@@ -22,6 +25,8 @@ from ..io.types import FrameData
 from ..sim.config import DVSConfig, Leak, Refractory, ShotNoise, ThresholdMismatch
 
 STATIC_COLS = 20
+FLAT = (0, 12, 0, 16)   # moving=True: rows y0:y1, columns x0:x1 of the flat patch
+FLAT_LEVEL = 0.5
 EPOCH = 1_700_000_000_000_000
 
 
@@ -48,7 +53,7 @@ class Truth:
 
 
 def scene(t_s: np.ndarray, width: int, height: int, seed: int, speed_px_s: float = 40.0, shake_px: float = 0.0,
-          shake_hz: float = 7.0) -> np.ndarray:
+          shake_hz: float = 7.0, moving: bool = False) -> np.ndarray:
     """(T, H, W) float32 linear intensity at times t_s. shake_px: the texture also shakes by this amplitude
     (pixels) along x at shake_hz and 1.7 shake_hz (a hand-held camera's shake: reversals inside frame
     intervals, which the frames do not resolve)."""
@@ -68,7 +73,11 @@ def scene(t_s: np.ndarray, width: int, height: int, seed: int, speed_px_s: float
         for lam, ang, ph, a in comps:
             f += a * np.sin(2 * np.pi * (u * np.cos(ang) + y * np.sin(ang)) / lam + ph)
         img = np.exp(np.log(0.25) + f)
-        img[:, :STATIC_COLS] = static[:, :STATIC_COLS]
+        if moving:
+            y0, y1, x0, x1 = FLAT
+            img[y0:y1, x0:x1] = FLAT_LEVEL
+        else:
+            img[:, :STATIC_COLS] = static[:, :STATIC_COLS]
         phase = (t * 1e3) % 100.0
         img[fy0:fy1, fx0:fx1] = 0.9 if 20.0 <= phase < 70.0 else 0.01
         out[i] = np.clip(img, 0.0, 1.0)
@@ -79,19 +88,19 @@ def make_recording(path, truth: Truth = Truth(), seed: int = 0, seconds: float =
                    exposure_us: int = 5000, width: int = 64, height: int = 48, rate_hz: float = 1000.0,
                    read_noise_dn: float = 1.0, with_frames: bool = True, n_frames: int | None = None,
                    saturate: bool = False, warmup_s: float = 2.0, shake_px: float = 0.0,
-                   shake_hz: float = 7.0, hot_hz: tuple[float, ...] | None = None) -> dict:
+                   shake_hz: float = 7.0, hot_hz: tuple[float, ...] | None = None, moving: bool = False) -> dict:
     """Write an AEDAT 4.0 recording of the synthetic scene; returns what went in. The simulator runs
     `warmup_s` before the recording starts (its events are dropped), so that every pixel's state (reference,
     leak phase) is in its steady state, as in a sensor that has been on for a while: started at t = 0, the
     simulator's random reference phases give extra leak events in the first seconds. shake_px: see scene;
-    hot_hz: one rate per hot pixel (default truth.hot_hz for each)."""
+    hot_hz: one rate per hot pixel (default truth.hot_hz for each); moving: see scene."""
     from ..io.aedat4.writer import write_aedat4
     from ..sim.dvs import simulate_events
 
     n0 = int(round(warmup_s * rate_hz))
     n = int(round(seconds * rate_hz)) + 1
     t_us = np.round(np.arange(-n0, n) * 1e6 / rate_hz).astype(np.int64)
-    frames = scene(t_us * 1e-6, width, height, seed, shake_px=shake_px, shake_hz=shake_hz)
+    frames = scene(t_us * 1e-6, width, height, seed, shake_px=shake_px, shake_hz=shake_hz, moving=moving)
     ev = simulate_events(frames, t_us, truth.dvs(), seed=seed)
     ev = ev.window(0, int(t_us[-1]) + 1)
     rng = np.random.default_rng(seed + 7)

@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from .aps import Recording, last_polarity
+from .aps import UNDER_DN, Recording, last_polarity
 
 TAU_SIGMAS = 4.0
 TAU_MIN = 0.02
@@ -102,10 +102,22 @@ class ThresholdFit:
 
 
 def frame_noise(rec: Recording) -> tuple[np.ndarray, np.ndarray]:
-    """Temporal noise of the APS frames (DN) by intensity: (band centres DN, noise DN), measured on quiet
-    pixels (few events over the whole recording: the event sensor says which pixels saw no change): per pixel
-    the standard deviation over frames of the linearly detrended DN, per intensity band (6 quantile bands of
-    the quiet pixels) the median."""
+    """Temporal noise of the APS frames (DN) by intensity: (band centres DN, noise DN), the lower of two
+    estimates, each an upper bound of the noise (motion only adds spread):
+
+    * quiet pixels (few events over the whole recording): per pixel the standard deviation over frames of
+      the linearly detrended DN, per intensity band (6 quantile bands) the median. Precise where the scene
+      has static pixels; with a moving camera no pixel is static and this reads the motion (tens of DN).
+    * quiet pairs (quiet_pair_noise): frame pairs in which neither the pixel nor its 8 neighbours has an
+      event, by the lower quartile of |frame difference|. Motion that fires no event still changes a pixel
+      by up to a threshold, but it only widens the difference's distribution (Anderson's inequality), and
+      the lower quartile is what it moves least; on a moving camera these pairs are the flat regions that
+      stay flat under motion.
+
+    Read and photon noise do not fall as the signal rises, so each band's bound also bounds every darker band
+    (a running minimum from the bright end): a flat bright region then bounds the noise of a textured darker
+    one, whose own event-free pairs still carry sub-threshold motion. Between and beyond the band centres the
+    noise is interpolated, and held constant past the outer ones."""
     from .aps import pixel_index
 
     F = rec.frames.reshape(len(rec.frames), -1)
@@ -122,15 +134,75 @@ def frame_noise(rec: Recording) -> tuple[np.ndarray, np.ndarray]:
     X = X - (t * X).sum(0) / (t * t).sum() * t
     sd = X.std(0, ddof=1)
     med = np.median(F[:, quiet], 0)
-    edges = np.unique(np.percentile(med, np.linspace(0, 100, 7)))
+    edges = np.unique(np.percentile(med, np.linspace(0, 100, 7))) if len(med) else np.array([])
     centres, noise = [], []
     for a, b in zip(edges[:-1], edges[1:]):
         m = (med >= a) & (med <= b)
         if m.sum() >= 10:
             centres.append(float(np.median(med[m])))
             noise.append(max(float(np.median(sd[m])), 0.5))   # 8-bit quantisation: >= 0.5 DN
-    if not centres:
+    pair = quiet_pair_noise(rec)
+    if not centres and pair is None:
         return np.array([0.0, 255.0]), np.array([1.0, 1.0])
+    if pair is None:
+        at, sd = np.asarray(centres), np.asarray(noise)
+    elif not centres:
+        at, sd = pair
+    else:
+        at = np.union1d(centres, pair[0])
+        sd = np.minimum(np.interp(at, centres, noise), np.interp(at, *pair))
+    # read and photon noise never fall as the signal rises: a band's upper bound also bounds every darker band
+    return at, np.minimum.accumulate(sd[::-1])[::-1]
+
+
+QUIET_PAIR_QUANTILE = 0.25
+QUIET_PAIR_Z = 0.318639363964375   # the standard normal's (1 + 0.25) / 2 quantile: |N(0, 1)|'s lower quartile
+
+
+def _integer_quantile(a: np.ndarray, q: float) -> float:
+    """The q quantile of integer-valued |a| with each value k spread uniformly over [k - 1/2, k + 1/2) ([0, 1/2)
+    for 0): 8-bit frames make |frame difference| an integer, whose plain quantile would jump by whole DN."""
+    k = np.abs(np.rint(a)).astype(np.int64)
+    c = np.cumsum(np.bincount(k)) / len(k)
+    j = int(np.searchsorted(c, q))
+    lo, hi = (0.0, 0.5) if j == 0 else (j - 0.5, j + 0.5)
+    below = 0.0 if j == 0 else float(c[j - 1])
+    return lo + (hi - lo) * (q - below) / max(float(c[j]) - below, 1e-12)
+
+
+def quiet_pair_noise(rec: Recording, min_pairs: int = 50) -> tuple[np.ndarray, np.ndarray] | None:
+    """Frame noise (band centres DN, noise DN) from frame pairs where the pixel and its 8 neighbours have no
+    event (both frames neither saturated nor under 3 DN): per intensity band (6 quantile bands of the pairs'
+    mean DN, each with at least min_pairs pairs) the lower quartile of |F1 - F0| over sqrt(2) times |N(0, 1)|'s
+    lower quartile, at least 0.5 DN. For Gaussian noise it is the noise; an unseen change only adds to it.
+    None when fewer than min_pairs such pairs exist."""
+    from .aps import pair_counts
+
+    if len(rec.frames) < 2:
+        return None
+    on, off = pair_counts(rec)
+    H, W = rec.height, rec.width
+    n = np.pad((on + off).reshape(-1, H, W), ((0, 0), (1, 1), (1, 1)))
+    hood = sum(n[:, dy:dy + H, dx:dx + W] for dy in range(3) for dx in range(3)).reshape(len(on), -1)
+    F = rec.frames.reshape(len(rec.frames), -1)
+    ok = ~rec.saturated().reshape(len(F), -1) & (F >= UNDER_DN)
+    use = (hood == 0) & ok[1:] & ok[:-1]
+    if use.sum() < min_pairs:
+        return None
+    d = (F[1:] - F[:-1])[use]
+    m = (0.5 * (F[1:] + F[:-1]))[use]
+    edges = np.unique(np.percentile(m, np.linspace(0, 100, 7)))
+    if len(edges) < 2:
+        edges = np.array([m.min(), m.max()])
+    centres, noise = [], []
+    for a, b in zip(edges[:-1], edges[1:]):
+        s = (m >= a) & (m <= b)
+        if s.sum() >= min_pairs:
+            centres.append(float(np.median(m[s])))
+            sd = _integer_quantile(d[s], QUIET_PAIR_QUANTILE) / QUIET_PAIR_Z / np.sqrt(2.0)
+            noise.append(max(sd, 0.5))
+    if not centres:
+        return None
     return np.asarray(centres), np.asarray(noise)
 
 

@@ -42,6 +42,7 @@ from pareto import save_json  # noqa: E402
 
 from ev3dgs.calib.report import calibrate_recording, to_toml  # noqa: E402
 from ev3dgs.calib.synth import Truth, make_recording  # noqa: E402
+from ev3dgs.errors import InputError  # noqa: E402
 
 PARAMS = [  # (name, truth attribute, getter on a Calibration)
     ("pos_threshold", "pos_threshold", lambda c: c.thresholds.c_on),
@@ -146,7 +147,12 @@ def record_mode(args) -> dict:
             if args.record_only:
                 continue
             t1 = time.perf_counter()
-            cal = calibrate_recording(final, boot=args.bootstrap, seed=seed)
+            try:
+                cal = calibrate_recording(final, boot=args.bootstrap, seed=seed)
+            except InputError as e:   # a recording calibrate refuses is a result, not the end of the study
+                rows.append({"sensor": name, "seed": seed, "seconds": args.seconds, "error": str(e)})
+                print(f"{name} seed {seed}: calibrate refused: {e}", flush=True)
+                continue
             on, off, share, refr, leak, shot = SENSORS[name]
             truth = {"pos_threshold": on, "neg_threshold": off, "mismatch_sigma": share * (on + off) / 2,
                      "refractory_us": refr, "leak_hz": leak, "shot_noise_hz": shot}
