@@ -7,6 +7,7 @@ import os
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ev3dgs.calib.report import calibrate_recording, to_toml
@@ -195,7 +196,11 @@ def test_real_recording_calibrated_beats_default(tmp_path):
     c = compare(rec, load_sim_config(tmp_path / "s.toml"), dark=dark)
     d = compare(rec, PRESETS["default"], dark=dark)
     assert c["count_maps"]["all"]["corr_pair_pixel"] > d["count_maps"]["all"]["corr_pair_pixel"]
-    assert abs(c["background"]["rel_error"]) < abs(d["background"]["rel_error"])
+    # rates compare by factor (1.7x too high is closer than 0.35x), not by linear relative error, which caps
+    # an underestimate's error at 1; within 3x of the real background is what docs/calibrate.md promises
+    factor = {k: abs(np.log1p(r["background"]["rel_error"])) for k, r in (("cal", c), ("default", d))}
+    assert factor["cal"] < factor["default"]
+    assert factor["cal"] < np.log(3.0)
 
 
 def test_product_never_names_the_shared_data():
