@@ -31,3 +31,18 @@ def test_against_its_own_tree_the_models_are_the_same(tmp_path):
         assert len(c["cpu"]["baseline_all_ms"]) == len(c["cpu"]["new_all_ms"]) == 2
         assert 0 < r["min"] <= r["median"] <= r["max"]
     assert png.stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_raster_workload_against_its_own_tree_gives_the_same_image(tmp_path):
+    """--raster: the rasterizer's forward + backward on one 10k cloud at 200x200, the same image bytes from both
+    workers (a few seconds: one case, two pairs)."""
+    js, png = tmp_path / "r.json", tmp_path / "r.png"
+    out = subprocess.run([sys.executable, str(SCRIPT), "--baseline", str(ROOT), "--raster", "--repeats", "2",
+                          "--json", str(js), "--plot", str(png)], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(js.read_text())
+    assert d["workload"] == "rasterizer forward + backward"
+    [c] = d["cases"]
+    assert (c["width"], c["height"], c["gaussians"]) == (200, 200, 10_000) and c["same_model_after_steps"]
+    assert len(c["cpu"]["new_all_ms"]) == 2

@@ -53,10 +53,30 @@ for line in sys.stdin:
         break
 """
 
+# --raster: the rasterizer's forward + backward of tools/bench/bench_raster.py (projection, binning, kernels,
+# gradients) on its random cloud, instead of the training step; the hash is the last call's image
+WORKER_RASTER = r"""
+import hashlib, sys, time
+sys.path.insert(0, "tools/bench")
+from bench_raster import cloud, run
+n, w, h = (int(v) for v in sys.argv[1:4])
+params, viewmat, K = cloud(n, w)
+image = run("cpu", params, viewmat, K, w, 1, h)
+print("ready", flush=True)
+for line in sys.stdin:
+    if line.strip() == "step":
+        t0, c0 = time.perf_counter(), time.process_time()
+        image = run("cpu", params, viewmat, K, w, 1, h)
+        print(f"{1e3 * (time.process_time() - c0)} {1e3 * (time.perf_counter() - t0)}", flush=True)
+    else:
+        print(hashlib.sha256(image.numpy().tobytes()).hexdigest(), flush=True)
+        break
+"""
 
-def _start(tree: Path, n: int, w: int, h: int) -> subprocess.Popen:
+
+def _start(tree: Path, n: int, w: int, h: int, worker: str = WORKER) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
-    p = subprocess.Popen([sys.executable, "-c", WORKER, str(n), str(w), str(h)], cwd=tree, env=env,
+    p = subprocess.Popen([sys.executable, "-c", worker, str(n), str(w), str(h)], cwd=tree, env=env,
                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     line = p.stdout.readline()
     if line.strip() != "ready":
@@ -71,8 +91,8 @@ def _ask(p: subprocess.Popen, cmd: str) -> str:
     return p.stdout.readline().strip()
 
 
-def case(baseline: Path, n: int, w: int, h: int, repeats: int) -> dict:
-    procs = {"baseline": _start(baseline, n, w, h), "new": _start(ROOT, n, w, h)}
+def case(baseline: Path, n: int, w: int, h: int, repeats: int, worker: str = WORKER) -> dict:
+    procs = {"baseline": _start(baseline, n, w, h, worker), "new": _start(ROOT, n, w, h, worker)}
     times = {"baseline": [], "new": []}
     try:
         for r in range(repeats):
@@ -127,6 +147,8 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default=None, help="what the baseline is, for the JSON (default: its folder's name)")
     ap.add_argument("--repeats", type=int, default=6)
     ap.add_argument("--quick", action="store_true", help="96x72 and 173x130 with 10k Gaussians only")
+    ap.add_argument("--raster", action="store_true",
+                    help="the rasterizer's forward + backward on bench_raster's 10k cloud at 200x200 instead of the step")
     ap.add_argument("--json", default="tools/results/bench_step_vs.json")
     ap.add_argument("--plot", default="tools/results/bench_step_vs.png")
     args = ap.parse_args(argv)
@@ -140,15 +162,18 @@ def main(argv=None) -> int:
         return 2
     sizes, counts = (SIZES[:2], COUNTS[:1]) if args.quick else (SIZES, COUNTS)
     cases = [(n, w, h) for (w, h) in sizes for n in counts]
+    if args.raster:
+        cases = [(10_000, 200, 200)]
     rows = []
     for n, w, h in cases:
-        r = case(baseline, n, w, h, args.repeats)
+        r = case(baseline, n, w, h, args.repeats, WORKER_RASTER if args.raster else WORKER)
         rows.append(r)
         c = r["cpu"]
         print(f"{w}x{h} {n // 1000}k: baseline {c['baseline_ms']:.0f} ms, new {c['new_ms']:.0f} ms CPU; ratio "
               f"{c['ratio']['median']:.2f} ({c['ratio']['min']:.2f}-{c['ratio']['max']:.2f}); "
               f"same model: {r['same_model_after_steps']}", flush=True)
-    out = {"baseline": args.label or baseline.name, "threads": 1, "cases": rows}
+    out = {"baseline": args.label or baseline.name, "threads": 1, "cases": rows,
+           "workload": "rasterizer forward + backward" if args.raster else "blur+event training step"}
     save_json(args.json, out, ", torch and numba on 1 thread")
     plot(out, args.plot)
     return 0
