@@ -264,9 +264,14 @@ def test_a_run_folder_written_before_the_terms_still_evaluates(tmp_path):
     assert math.isfinite(metrics["test"]["psnr"])
 
 
-def test_a_checkpoint_written_before_the_terms_resumes_as_an_uninterrupted_run(tmp_path):
+def test_a_checkpoint_written_before_the_terms_resumes_as_an_uninterrupted_run(tmp_path, monkeypatch):
     """old_run/cut was stopped after its step-3 checkpoint; resumed by today's trainer it ends with the same
-    model, bit for bit, as today's trainer running the same settings without a stop."""
+    model, bit for bit, as today's trainer running the same settings without a stop. The fixture was trained
+    with the numba tile kernels, so both runs use them: the C kernels round differently (their own resume is
+    bitwise, tests/test_train.py), and steps 1-3 of the fresh run must be those of the checkpoint."""
+    from ev3dgs.splat import cpu_simd
+
+    monkeypatch.setattr(cpu_simd, "KERNEL", "numba")
     old = _old_run(tmp_path)
     scene = str(old / "scene.h5")
     assert cli.main(["train", scene, "--out", str(old / "cut"), "--resume", "--quiet"]) == 0
