@@ -38,6 +38,19 @@ def test_non_contiguous_input():
     assert np.array_equal(_stable_argsort(v), np.argsort(v, kind="stable"))
 
 
+def _random_boxes(rng, C, N, width, height, reach, size):
+    """(C, N, 4) int32 pixel boxes [x0, x1, y0, y1]: corners from ``reach`` pixels outside the image, up to
+    ``size`` pixels wide and high, clipped to the image; about 10 % empty (0, -1, 0, -1). The draws are in
+    the order the tests made them before this helper, so their seeds give the same boxes."""
+    x0 = rng.integers(-reach, width, (C, N))
+    y0 = rng.integers(-reach, height, (C, N))
+    boxes = np.stack([np.clip(x0, 0, width - 1), np.clip(x0 + rng.integers(0, size, (C, N)), 0, width - 1),
+                      np.clip(y0, 0, height - 1), np.clip(y0 + rng.integers(0, size, (C, N)), 0, height - 1)],
+                     axis=-1).astype(np.int32)
+    boxes[rng.random((C, N)) < 0.1] = (0, -1, 0, -1)
+    return boxes
+
+
 def test_binning_does_not_depend_on_how_the_work_is_split():
     """_bin cut into chunks per camera (used when there are fewer cameras than threads) gives exactly the
     lists of the one-piece version, which places Gaussians in depth order, ties by index: checked against
@@ -47,12 +60,7 @@ def test_binning_does_not_depend_on_how_the_work_is_split():
     rng = np.random.default_rng(3)
     C, N, width, height = 2, 300, 70, 50
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    x0 = rng.integers(-10, width, (C, N))
-    y0 = rng.integers(-10, height, (C, N))
-    boxes = np.stack([np.clip(x0, 0, width - 1), np.clip(x0 + rng.integers(0, 30, (C, N)), 0, width - 1),
-                      np.clip(y0, 0, height - 1), np.clip(y0 + rng.integers(0, 30, (C, N)), 0, height - 1)],
-                     axis=-1).astype(np.int32)
-    boxes[rng.random((C, N)) < 0.1] = (0, -1, 0, -1)  # empty
+    boxes = _random_boxes(rng, C, N, width, height, reach=10, size=30)
     radii = rng.integers(0, 3, (C, N)).astype(np.int64)  # 0: not visible
     depths = rng.integers(0, 20, (C, N)).astype(np.float32)  # many ties
     offsets, ids = _bin(boxes, radii, depths, tiles_x, tiles_y, 1)
@@ -101,12 +109,7 @@ def test_binning_equals_an_independent_construction(seed, C, N, width, height, l
 
     rng = np.random.default_rng(seed)
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    x0 = rng.integers(-20, width, (C, N))
-    y0 = rng.integers(-20, height, (C, N))
-    boxes = np.stack([np.clip(x0, 0, width - 1), np.clip(x0 + rng.integers(0, 60, (C, N)), 0, width - 1),
-                      np.clip(y0, 0, height - 1), np.clip(y0 + rng.integers(0, 60, (C, N)), 0, height - 1)],
-                     axis=-1).astype(np.int32)
-    boxes[rng.random((C, N)) < 0.1] = (0, -1, 0, -1)
+    boxes = _random_boxes(rng, C, N, width, height, reach=20, size=60)
     radii = rng.integers(0, 3, (C, N)).astype(np.int64)
     depths = (0.5 + rng.integers(0, levels, (C, N))).astype(np.float32)
     want = _lists_by_numpy(boxes, radii, depths, tiles_x, tiles_y)
