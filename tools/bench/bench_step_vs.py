@@ -30,48 +30,51 @@ sys.path.insert(0, str(TOOLS))  # pareto.py
 SIZES = [(96, 72), (173, 130), (346, 260)]
 COUNTS = [10_000, 50_000, 100_000]
 
-# runs inside a worker, with the tree's root as cwd and on PYTHONPATH
-WORKER = r"""
+# runs inside a worker, with the tree's root as cwd and on PYTHONPATH: a workload's set-up (defining work()
+# and digest()) between the common head and the common loop
+WORKER_HEAD = r"""
 import hashlib, sys, time
 sys.path.insert(0, "tools/bench")
-from bench_train_scaling import make_step
 n, w, h = (int(v) for v in sys.argv[1:4])
+"""
+WORKER_LOOP = r"""
+work()
+print("ready", flush=True)
+for line in sys.stdin:
+    if line.strip() == "step":
+        t0, c0 = time.perf_counter(), time.process_time()
+        work()
+        print(f"{1e3 * (time.process_time() - c0)} {1e3 * (time.perf_counter() - t0)}", flush=True)
+    else:
+        print(digest(), flush=True)
+        break
+"""
+# the blur+event training step; the hash is the model's parameters
+STEP = r"""
+from bench_train_scaling import make_step
 step = make_step(n, w, h)
 model = next(c.cell_contents for c in step.__closure__ if hasattr(c.cell_contents, "params"))
-step(1)
-print("ready", flush=True)
-for line in sys.stdin:
-    if line.strip() == "step":
-        t0, c0 = time.perf_counter(), time.process_time()
-        step(1)
-        print(f"{1e3 * (time.process_time() - c0)} {1e3 * (time.perf_counter() - t0)}", flush=True)
-    else:
-        hsh = hashlib.sha256()
-        for name in sorted(model.params):
-            hsh.update(model.params[name].detach().numpy().tobytes())
-        print(hsh.hexdigest(), flush=True)
-        break
+def work():
+    step(1)
+def digest():
+    hsh = hashlib.sha256()
+    for name in sorted(model.params):
+        hsh.update(model.params[name].detach().numpy().tobytes())
+    return hsh.hexdigest()
 """
-
 # --raster: the rasterizer's forward + backward of tools/bench/bench_raster.py (projection, binning, kernels,
 # gradients) on its random cloud, instead of the training step; the hash is the last call's image
-WORKER_RASTER = r"""
-import hashlib, sys, time
-sys.path.insert(0, "tools/bench")
+RASTER = r"""
 from bench_raster import cloud, run
-n, w, h = (int(v) for v in sys.argv[1:4])
 params, viewmat, K = cloud(n, w)
-image = run("cpu", params, viewmat, K, w, 1, h)
-print("ready", flush=True)
-for line in sys.stdin:
-    if line.strip() == "step":
-        t0, c0 = time.perf_counter(), time.process_time()
-        image = run("cpu", params, viewmat, K, w, 1, h)
-        print(f"{1e3 * (time.process_time() - c0)} {1e3 * (time.perf_counter() - t0)}", flush=True)
-    else:
-        print(hashlib.sha256(image.numpy().tobytes()).hexdigest(), flush=True)
-        break
+last = []
+def work():
+    last[:] = [run("cpu", params, viewmat, K, w, 1, h)]
+def digest():
+    return hashlib.sha256(last[0].numpy().tobytes()).hexdigest()
 """
+WORKER = WORKER_HEAD + STEP + WORKER_LOOP
+WORKER_RASTER = WORKER_HEAD + RASTER + WORKER_LOOP
 
 
 def _start(tree: Path, n: int, w: int, h: int, worker: str = WORKER) -> subprocess.Popen:
