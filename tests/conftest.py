@@ -13,6 +13,9 @@ arithmetic, never from a value one machine printed. With unit round-off u (float
 Where a comparison can be exact (same code, same inputs, deterministic kernels) the tests use equality.
 """
 import os
+import shutil
+
+import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # numba re-reads its config at every compile and refuses a thread count other than the one its pool was
@@ -20,3 +23,11 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # (tests/test_aedat4_packets.py). Pinned for the session as a guard; the failure seen on a cold kernel cache
 # came from a test importing a benchmark that sets NUMBA_NUM_THREADS=1 (tests/test_calibrate_compare.py).
 os.environ.setdefault("NUMBA_NUM_THREADS", str(max(1, len(os.sched_getaffinity(0)))))
+
+
+@pytest.fixture
+def scene_copy(valid_file, tmp_path):
+    """A writable copy of the module's ``valid_file`` fixture (a scene file the module's tests corrupt)."""
+    path = tmp_path / "scene.h5"
+    shutil.copy(valid_file, path)
+    return path

@@ -62,13 +62,6 @@ def valid_file(tmp_path_factory):
     return path
 
 
-@pytest.fixture
-def scene_copy(valid_file, tmp_path):
-    path = tmp_path / "scene.h5"
-    shutil.copy(valid_file, path)
-    return path
-
-
 # ------------------------------------------------------------------------------------- corruptions
 
 

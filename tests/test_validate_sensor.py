@@ -4,7 +4,6 @@ exposed far longer than the whole event stream; train refuses a distortion it ca
 from __future__ import annotations
 
 import dataclasses
-import shutil
 
 import h5py
 import numpy as np
@@ -27,13 +26,6 @@ def valid_file(tmp_path_factory):
                                                 temperature=np.full(50, 30.0, np.float32)))
     path = tmp_path_factory.mktemp("valid53") / "scene.h5"
     schema.write(sc, path)
-    return path
-
-
-@pytest.fixture
-def scene_copy(valid_file, tmp_path):
-    path = tmp_path / "scene.h5"
-    shutil.copy(valid_file, path)
     return path
 
 

@@ -362,11 +362,6 @@ class Trainer:
         parts = ", ".join(f"{k} {float(v):.4g}" for k, v in losses.items())
         raise TrainingError(f"non-finite loss or gradient at step {step} ({parts}); stopped, {where}")
 
-    def _guard(self, loss, losses: dict) -> None:
-        """The non-finite guard read back at once (as train_step does): TrainingError naming the next step."""
-        if not bool(self._finite(loss)):
-            self._raise_bad(self.step + 1, dict(losses))
-
     # ------------------------------------------------------------------ the run
     def fit(self, resume: bool = False, on_step=None) -> dict:
         """Train to cfg.iterations. ``resume``: continue from RUN/ckpt.pt (refused, one line, when it was made
