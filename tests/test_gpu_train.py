@@ -49,5 +49,5 @@ def test_cuda_training_agrees_with_cpu_at_the_first_step_and_stays_finite(tmp_pa
     last = sum(r["blur"] for r in gpu[-5:]) / 5
     assert last < first  # it fits: the blur loss falls
     if kw.get("refine_poses"):  # camera gradients reached the corrections through gsplat's view matrices
-        table = trainer.pose_refiner.table()
+        table = trainer.term("poses").refiner.table()
         assert np.isfinite(table).all() and np.abs(table).max() > 0

@@ -294,7 +294,7 @@ def test_resume_continues_the_refinement_exactly(scene, tmp_path, frame):
         part.fit(on_step=stop)
     rest = Trainer(_cfg(scene, iterations=8, checkpoint_every=4, pose_frame=frame), tmp_path / "p", quiet=True)
     rest.fit(resume=True)
-    a, b = whole.pose_refiner.state_dict(), rest.pose_refiner.state_dict()
+    a, b = whole.term("poses").refiner.state_dict(), rest.term("poses").refiner.state_dict()
     assert torch.equal(a["params"], b["params"]) and a["frame"] == b["frame"] == frame
     assert np.abs(a["params"].numpy()).max() > 0
     with np.load(tmp_path / "p" / "trajectory.npz") as z:

@@ -914,8 +914,8 @@ def test_training_with_extreme_learning_rates(tiny_scene, tmp_path, lr_factor, v
         for group in opt.param_groups:
             group["lr"] *= lr_factor
     tr.means_lr0 *= lr_factor  # the trainer re-derives the means lr from this every step
-    if tr.threshold_opt is not None:
-        for group in tr.threshold_opt.param_groups:
+    if tr.term("events").threshold_opt is not None:
+        for group in tr.term("events").threshold_opt.param_groups:
             group["lr"] *= lr_factor
     stopped = None
     for _ in range(5):

@@ -134,17 +134,18 @@ def test_resume_matches_an_uninterrupted_run(scene_path, tmp_path, extra):
         assert torch.equal(p, resumed.model.params[name]), name
     assert resumed.step == full.step == 60
     if "threshold_map" in extra:
-        assert torch.equal(full.threshold_map.multiplier, resumed.threshold_map.multiplier)
+        assert torch.equal(full.term("threshold_map").map.multiplier, resumed.term("threshold_map").map.multiplier)
         saved = torch.load(tmp_path / "a" / "model.pt", weights_only=False)["threshold_map"]
-        assert saved.shape == (2, H, W) and torch.equal(saved, full.threshold_map.multiplier)
+        assert saved.shape == (2, H, W) and torch.equal(saved, full.term("threshold_map").map.multiplier)
         assert not torch.equal(saved, torch.ones_like(saved))    # the events moved it
     if "learn_response" in extra:
-        assert torch.equal(full.response.logits, resumed.response.logits)
-        assert not torch.equal(full.response.logits, torch.zeros_like(full.response.logits))  # it was learned
+        assert torch.equal(full.term("response").curve.logits, resumed.term("response").curve.logits)
+        learned = full.term("response").curve.logits
+        assert not torch.equal(learned, torch.zeros_like(learned))  # it was learned
         table = json.loads((tmp_path / "a" / "response.json").read_text())
-        assert table["decoded_as"] == [float(v) for v in full.response.values().detach().double()]
+        assert table["decoded_as"] == [float(v) for v in full.term("response").curve.values().detach().double()]
     if "frame_noise" in extra:
-        assert resumed.blur_mse == full.blur_mse is not None
+        assert resumed.term("events").blur_mse == full.term("events").blur_mse is not None
 
 
 def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_noise(scene_path, tmp_path):
@@ -161,10 +162,10 @@ def test_frame_noise_weighs_the_events_up_as_the_blur_error_comes_down_to_the_no
         tr = Trainer(cfg(scene_path, iterations=30, frame_noise=fn), tmp_path / name, quiet=True)
         tr.fit()
         runs[name] = tr
-    assert runs["off"].frame_noise_var == 0.0 and runs["off"].blur_mse is None
-    assert blur_weight(runs["loud"].frame_noise_var, runs["loud"].blur_mse) == W_MIN
+    assert runs["off"].term("events").frame_noise_var == 0.0 and runs["off"].term("events").blur_mse is None
+    assert blur_weight(runs["loud"].term("events").frame_noise_var, runs["loud"].term("events").blur_mse) == W_MIN
     assert not torch.equal(runs["off"].model.params["means"], runs["loud"].model.params["means"])
-    assert TrainConfig(scene=scene_path).frame_noise is None and runs["auto"].frame_noise_var == 0.0
+    assert TrainConfig(scene=scene_path).frame_noise is None and runs["auto"].term("events").frame_noise_var == 0.0
     for n, p in runs["auto"].model.params.items():
         assert torch.equal(p, runs["off"].model.params[n]), n
     log = [json.loads(line) for line in (tmp_path / "loud" / "log.jsonl").read_text().splitlines()]
@@ -187,7 +188,7 @@ def test_threshold_map_is_inert_without_mismatch_and_needs_the_noise_norm(scene_
     mapped = Trainer(cfg(scene_path, iterations=15, event_mismatch=0.0, threshold_map=True), tmp_path / "b",
                      quiet=True)
     mapped.fit()
-    assert mapped.threshold_map is None
+    assert mapped.term("threshold_map") is None
     for name, p in plain.model.params.items():
         assert torch.equal(p, mapped.model.params[name]), name
     from ev3dgs.errors import ConfigError

@@ -141,14 +141,6 @@ class Trainer:
     """The core: model, optimiser, densification, schedule, checkpoints and the loop. Everything optional is
     a term (train/terms/), built from the registry where the config turns it on."""
 
-    # attributes older callers read on the trainer, now held by a term: name -> (term table, attribute)
-    TERM_ATTRS = {"pose_refiner": ("poses", "refiner"), "threshold_map": ("threshold_map", "map"),
-                  "event_floor": ("events", "floor"), "blur_mse": ("events", "blur_mse"),
-                  "frame_noise_var": ("events", "frame_noise_var"), "rel_mismatch": ("events", "rel_mismatch"),
-                  "noise_rate_hz": ("events", "noise_rate_hz"), "threshold_opt": ("events", "threshold_opt"),
-                  "pair_generator": ("events", "pair_generator"), "response": ("response", "curve"),
-                  "response_opt": ("response", "opt"), "edi": ("edi_prior", "inputs")}
-
     def __init__(self, cfg: TrainConfig, run_dir: str | Path, quiet: bool = False):
         from .terms import all_terms
 
@@ -188,13 +180,6 @@ class Trainer:
     def term(self, table: str):
         """This run's term of that table, or None where it is off."""
         return next((t for t in self.terms if t.table == table), None)
-
-    def __getattr__(self, name):
-        if name in Trainer.TERM_ATTRS and "terms" in self.__dict__:
-            table, attr = Trainer.TERM_ATTRS[name]
-            term = self.term(table)
-            return None if term is None else getattr(term, attr)
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     @property
     def use_events(self) -> bool:

@@ -59,9 +59,10 @@ def fit_scene(scene: str, steps: int, seed: int, run: Path, refine: bool = False
     out = {"state": tr.model.state_dict(), "corrections": None, "refined_mid": None,
            "blur_view_psnr": evaluate(run, device="cpu", write_images=False)["blur_view"]["psnr"]}
     if refine:
-        out["corrections"] = torch.stack([p.detach() for p in tr.pose_refiner.params]).clone()
+        refiner = tr.term("poses").refiner
+        out["corrections"] = torch.stack([p.detach() for p in refiner.params]).clone()
         ex = schema.read(scene).train.exposure
-        out["refined_mid"] = study_refine.mid_poses(tr.pose_refiner.all_c2w(), np.asarray(tr.pose_refiner.times), ex)
+        out["refined_mid"] = study_refine.mid_poses(refiner.all_c2w(), np.asarray(refiner.times), ex)
     return out
 
 
@@ -80,7 +81,7 @@ def frozen_refine(pert_scene: str, known: dict, steps: int, lr: float, frame: st
     tr.model.load_state_dict(known["state"])
     if known["corrections"] is not None:
         with torch.no_grad():
-            for v, p in enumerate(tr.pose_refiner.params):
+            for v, p in enumerate(tr.term("poses").refiner.params):
                 p.copy_(known["corrections"][v])
     tr.optimizers = tr.model.make_optimizers(scene_scale=tr.data.scene_scale)  # for the loaded tensors
     for opt in tr.optimizers.values():
@@ -97,7 +98,8 @@ def frozen_refine(pert_scene: str, known: dict, steps: int, lr: float, frame: st
     tr.save_model()  # model.pt (the frozen scene) and trajectory.npz (the refined poses), for evaluate
     psnr = evaluate(run, device="cpu", write_images=False)["blur_view"]["psnr"]
     ex = schema.read(pert_scene).train.exposure
-    return study_refine.mid_poses(tr.pose_refiner.all_c2w(), np.asarray(tr.pose_refiner.times), ex), psnr
+    refiner = tr.term("poses").refiner
+    return study_refine.mid_poses(refiner.all_c2w(), np.asarray(refiner.times), ex), psnr
 
 
 def scene_geometry(path: str):
