@@ -459,29 +459,36 @@ def a2_files(d: Path) -> dict[str, Path]:
     return files
 
 
-def run_a2_shift(n: int, rng: np.random.Generator, d: Path, files: dict, args) -> list[dict]:
+def _a2_shift_rows(mode: str, n: int, rng: np.random.Generator, d: Path, files: dict, args, pick_at,
+                   fill) -> list[dict]:
+    """The cases of an AEDAT 2.0 shift class: per case one file (round robin), ``pick_at(data)`` the byte
+    where 1-7 bytes are inserted (``fill(k)``) or removed, strict one time in three; checked by child ``mode``."""
     rows = []
     names = sorted(files)
     for c in range(n):
         which = names[c % len(names)]
         data = files[which].read_bytes()
-        at = _a2_data_start(data)
+        at = pick_at(data)
         k = int(rng.integers(1, 8))
         op = "insert" if rng.random() < 0.5 else "remove"
         strict = bool(rng.random() < 1 / 3)
-        if op == "insert":
-            fill = rng.integers(0, 256, k, dtype=np.uint8).tobytes() if rng.random() < 0.7 else bytes(k)
-            mutated = data[:at] + fill + data[at:]
-        else:
-            mutated = data[:at] + data[at + k:]
-        p = d / f"shift{c}.aedat"
+        mutated = data[:at] + fill(k) + data[at:] if op == "insert" else data[:at] + data[at + k:]
+        p = d / f"{mode.removeprefix('aedat2-')}{c}.aedat"
         p.write_bytes(mutated)
-        res = _run_child(["aedat2-shift", str(p), str(files[which]), json.dumps({"strict": strict})],
+        res = _run_child([mode, str(p), str(files[which]), json.dumps({"strict": strict})],
                          args.time_limit, args.mem_mb)
         rows.append({"case": c, "file": which, "mutation": f"{op} {k} bytes at byte {at}", "strict": strict,
                      "outcome": res.pop("class"), **res})
         p.unlink()
     return rows
+
+
+def run_a2_shift(n: int, rng: np.random.Generator, d: Path, files: dict, args) -> list[dict]:
+    """Bytes inserted (random, or zeros three times in ten) or removed where the header ends."""
+    def fill(k: int) -> bytes:
+        return rng.integers(0, 256, k, dtype=np.uint8).tobytes() if rng.random() < 0.7 else bytes(k)
+
+    return _a2_shift_rows("aedat2-shift", n, rng, d, files, args, _a2_data_start, fill)
 
 
 def run_a2_flip(n: int, rng: np.random.Generator, d: Path, files: dict, args) -> list[dict]:
@@ -1133,28 +1140,13 @@ def run_a2_midshift(n: int, rng: np.random.Generator, d: Path, files: dict, args
     if "davis240" not in files:
         files["davis240"] = d / "davis240.aedat"
         files["davis240"].write_bytes(build_davis240()[0])
-    names = sorted(files)
-    rows = []
-    for c in range(n):
-        which = names[c % len(names)]
-        data = files[which].read_bytes()
-        start = _a2_data_start(data)
-        at = int(rng.integers(start + 8 * 64, len(data) - 8 * 64))
-        k = int(rng.integers(1, 8))
-        op = "insert" if rng.random() < 0.5 else "remove"
-        strict = bool(rng.random() < 1 / 3)
-        if op == "insert":
-            mutated = data[:at] + rng.integers(0, 256, k, dtype=np.uint8).tobytes() + data[at:]
-        else:
-            mutated = data[:at] + data[at + k:]
-        p = d / f"midshift{c}.aedat"
-        p.write_bytes(mutated)
-        res = _run_child(["aedat2-midshift", str(p), str(files[which]), json.dumps({"strict": strict})],
-                         args.time_limit, args.mem_mb)
-        rows.append({"case": c, "file": which, "mutation": f"{op} {k} bytes at byte {at}", "strict": strict,
-                     "outcome": res.pop("class"), **res})
-        p.unlink()
-    return rows
+    def pick_at(data: bytes) -> int:   # 64 events clear of the data's ends
+        return int(rng.integers(_a2_data_start(data) + 8 * 64, len(data) - 8 * 64))
+
+    def fill(k: int) -> bytes:
+        return rng.integers(0, 256, k, dtype=np.uint8).tobytes()
+
+    return _a2_shift_rows("aedat2-midshift", n, rng, d, files, args, pick_at, fill)
 
 
 HOSTILE_KEYS = (("dvs", "pos_threshold"), ("dvs", "neg_threshold"), ("dvs", "log_knee"),
