@@ -16,6 +16,14 @@ rendering does not depend on the sensor), so each extra sensor costs only its ev
     python tools/studies/study_calibrate.py record --seconds 2 --seeds 1 --sensors A C \\
         --json tools/results/study_calibrate_record.json [--work DIR]
 
+ablate: one sensor factor at a time on the same frames. From the render cache that `record` keeps in --work
+(no Blender), re-simulate the events of sensors A, B, C with only their thresholds, with one effect added,
+without the mismatch and whole (the whole sensor reproduces the recording's event count), fit the thresholds
+at the true APS curve (dark 0, the simulator's knee) without bootstrap; and compare the APS log changes with
+the DVS's own log intensity at the exposure midpoints.
+
+    python tools/studies/study_calibrate.py ablate --work DIR --json tools/results/study_calibrate_ablation.json
+
 real: calibrate each real recording, then compare (a) the calibrated config, (b) the simulator's default,
 (c) v2e's clean and (d) noisy presets (ev3dgs.sim.presets) on it; the same APS dark level for all four.
 
@@ -173,6 +181,115 @@ def record_mode(args) -> dict:
                         for k, v in SENSORS.items()}}
 
 
+ABLATIONS = {  # variant -> which effects of the sensor stay on
+    "thresholds only": (),
+    "refractory only": ("refractory",),
+    "shot noise only": ("shot_noise",),
+    "leak only": ("leak",),
+    "mismatch only": ("threshold_mismatch",),
+    "without mismatch": ("refractory", "shot_noise", "leak"),
+    "full": ("threshold_mismatch", "refractory", "shot_noise", "leak"),
+}
+
+
+def _fail(message: str):
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _cached_render(work: Path, seed: int, seconds: float):
+    """The rendered linear frames `record` cached for (seed, duration) and their times (us, as `record`
+    simulates them: 250 Hz over the recording, 25 fps frames of 10 ms)."""
+    from ev3dgs.sim.record import EPOCH_US, READOUT_US
+
+    caches = sorted(work.glob(f".rec_s{seed}_{seconds:g}s.cache-*"))
+    if not caches:
+        _fail(f"no render cache .rec_s{seed}_{seconds:g}s.cache-* in {work} (run record first)")
+    files = sorted(caches[0].glob("traj_*.npz"))
+    frames = np.concatenate([np.load(f)["frames"] for f in files])
+    n_frames = int(round(seconds * 25))
+    eoe = READOUT_US + np.round((n_frames - 1) * 1e6 / 25) + 10_000
+    duration_us = max(int(round(seconds * 1e6)), int(eoe) + READOUT_US)
+    t_rel = np.unique(np.append(np.round(np.arange(0, duration_us, 1e6 / 250)).astype(np.int64), duration_us))
+    if len(t_rel) != len(frames):
+        _fail(f"the render cache has {len(frames)} frames, the recording needs {len(t_rel)}")
+    return frames, EPOCH_US + t_rel
+
+
+def dvs_vs_aps(rec, frames, t_abs, knee: float) -> dict:
+    """The APS log change of each frame pair (well exposed, |change| > 0.1) against the DVS's own: the log of
+    the rendered frames' luminance (what the simulator's pixels see, without the camera's ISP and 8-bit
+    readout), linear in time between rendered frames as the simulator takes it, at the exposure midpoints."""
+    from ev3dgs.calib.thresholds import log_intensity
+    from ev3dgs.logmap import safe_log
+    from ev3dgs.sim.dvs import luminance
+
+    L = np.stack([safe_log(luminance(f), knee) for f in frames]).reshape(len(frames), -1).astype(np.float64)
+    tm = rec.t_mid.astype(np.float64)
+    ta = t_abs.astype(np.float64)
+    j = np.clip(np.searchsorted(ta, tm) - 1, 0, len(ta) - 2)
+    w = ((tm - ta[j]) / (ta[j + 1] - ta[j]))[:, None]
+    d_dvs = np.diff(L[j] * (1 - w) + L[j + 1] * w, axis=0)
+    d_aps = np.diff(log_intensity(rec.frames.reshape(len(tm), -1), 0.0, knee, rec.full_scale), axis=0)
+    v = rec.valid(0.0).reshape(len(tm), -1)
+    m = v[1:] & v[:-1] & (np.abs(d_aps) > 0.1)
+    return {"pairs": int(m.sum()), "corr": float(np.corrcoef(d_aps[m], d_dvs[m])[0, 1]),
+            "dvs_over_aps_up": float(d_dvs[m & (d_aps > 0)].sum() / d_aps[m & (d_aps > 0)].sum()),
+            "dvs_over_aps_down": float(d_dvs[m & (d_aps < 0)].sum() / d_aps[m & (d_aps < 0)].sum())}
+
+
+def ablate(args) -> dict:
+    """Thresholds fitted on re-simulations of the same rendered frames with sensor factors switched off."""
+    import dataclasses
+
+    from ev3dgs.calib.aps import load_recording, pair_counts
+    from ev3dgs.calib.thresholds import fit_thresholds
+    from ev3dgs.logmap import DEFAULT_LOG_KNEE
+    from ev3dgs.sim.dvs import DVSSimulator
+    from ev3dgs.sim.scenes import load_scene
+
+    work = Path(args.work)
+    frames, t_abs = _cached_render(work, args.seed, args.seconds)
+    isp = load_scene(args.scene).sensor.isp
+    out = {"variants": [], "settings": {"seed": args.seed, "seconds": args.seconds, "scene": args.scene,
+                                        "curve": [0.0, DEFAULT_LOG_KNEE], "bootstrap": 0}}
+    rec = None
+    for name in args.sensors:
+        path = work / f"rec_{name}_s{args.seed}_{args.seconds:g}s.aedat4"
+        if not path.is_file():
+            _fail(f"no recording {path} (run record first)")
+        if rec is None:
+            rec = load_recording(path)          # the APS frames do not depend on the sensor
+            out["dvs_vs_aps"] = dvs_vs_aps(rec, frames, t_abs, DEFAULT_LOG_KNEE)
+            print(f"DVS vs APS log changes: {out['dvs_vs_aps']}", flush=True)
+        full = sensor_dvs(name)
+        for variant, keep in ABLATIONS.items():
+            if variant == "mismatch only" and full.threshold_mismatch is None:
+                continue
+            t0 = time.perf_counter()
+            dvs = dataclasses.replace(full, **{k: getattr(full, k) if k in keep else None for k in
+                                               ("threshold_mismatch", "refractory", "shot_noise", "leak")})
+            sim = DVSSimulator(frames.shape[1], frames.shape[2], dvs, seed=args.seed, isp=isp)
+            ev = sim.feed(frames, t_abs)
+            r = dataclasses.replace(rec, events=ev)
+            on, off = pair_counts(r)
+            R = dvs.refractory.period_us if dvs.refractory else 0.0
+            th = fit_thresholds(r, on, off, boot=0, seed=args.seed, curve=(0.0, DEFAULT_LOG_KNEE), refractory_us=R)
+            row = {"sensor": name, "variant": variant, "events": len(ev),
+                   "pos_threshold": th.c_on.value, "neg_threshold": th.c_off.value,
+                   "pos_error": th.c_on.value / full.pos_threshold - 1,
+                   "neg_error": th.c_off.value / full.neg_threshold - 1,
+                   "mismatch_sigma": th.sigma.value,
+                   "mismatch_truth": dvs.threshold_mismatch.sigma if dvs.threshold_mismatch else 0.0,
+                   "seconds": time.perf_counter() - t0}
+            if variant == "full":
+                row["recording_events"] = len(load_recording(path).events)
+            out["variants"].append(row)
+            print(f"{name} {variant}: C_on {100 * row['pos_error']:+.1f} %, C_off {100 * row['neg_error']:+.1f} %, "
+                  f"mismatch {row['mismatch_sigma']} (truth {row['mismatch_truth']:g}), {len(ev)} events", flush=True)
+    return out
+
+
 def plot_synthetic(res: dict, path: str) -> None:
     import matplotlib
 
@@ -268,6 +385,13 @@ def main() -> int:
     c.add_argument("--record-only", action="store_true", help="record the recordings, calibrate nothing")
     c.add_argument("--work", help="folder for the recordings (kept; default: a new temporary folder)")
     c.add_argument("--json", required=True)
+    b = sub.add_parser("ablate")
+    b.add_argument("--work", required=True, help="the record mode's folder (recordings and render cache)")
+    b.add_argument("--seed", type=int, default=1)
+    b.add_argument("--seconds", type=float, default=2.0)
+    b.add_argument("--sensors", nargs="+", default=["A", "B", "C"], choices=list(SENSORS))
+    b.add_argument("--scene", default="lego")
+    b.add_argument("--json", required=True)
     r = sub.add_parser("real")
     r.add_argument("recordings", nargs="+")
     r.add_argument("--bootstrap", type=int, default=100)
@@ -281,6 +405,10 @@ def main() -> int:
         save_json(a.json, res)
         if a.plot:
             plot_synthetic(res, a.plot)
+    elif a.mode == "ablate":
+        res = ablate(a)
+        res["seconds_total"] = time.perf_counter() - t0
+        save_json(a.json, res)
     elif a.mode == "record":
         res = record_mode(a)
         res["seconds_total"] = time.perf_counter() - t0
