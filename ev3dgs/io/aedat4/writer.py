@@ -119,7 +119,13 @@ def _vector_table(ident: str, vt_offsets: list[int], table_size: int, rows: np.n
     stride = rows.dtype.itemsize
     slots = vec + 4 + 4 * np.arange(n, dtype=np.int64)
     tables = first + stride * np.arange(n, dtype=np.int64)
-    rows = rows.copy()
+    # a fresh zeroed array, filled field by field: the rows' padding bytes are written as zeros whatever the
+    # caller's array holds there (numpy's copy of a structured array need not carry them), so the same
+    # recording always gives the same file
+    packed = np.zeros(n, rows.dtype)
+    for name in rows.dtype.names:
+        packed[name] = rows[name]
+    rows = packed
     rows["soff"] = tables - elem_vt
     struct.pack_into("<I", fb.b, vec, n)
     fb.b[vec + 4:vec + 4 + 4 * n] = (tables - slots).astype("<u4").tobytes()
