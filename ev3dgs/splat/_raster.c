@@ -16,6 +16,7 @@
 #include <Python.h>
 #include <pthread.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 #include <time.h>
 
@@ -53,6 +54,8 @@ typedef struct {
     int64_t n_threads;
     int64_t isa;               /* -1: best available, 0: portable build, 1: AVX2 (if the CPU has it) */
     int64_t *tile_ns;          /* NULL, or (C * n_tiles,): each tile's thread CPU time in ns (benchmarks) */
+    int64_t write_rows;        /* backward: per_pair's rows are written (every row, 0 without fragments) instead of
+                                  added to (a zeroed buffer) */
 } job_t;
 
 typedef void (*tile_fn)(const job_t *, int64_t);
@@ -171,6 +174,181 @@ void ev3dgs_exp_neg(const float *s, float *out, int64_t n, int64_t isa)
     (void)isa;
 #endif
     exp_neg_array_portable(s, out, n);
+}
+
+/* ---- the records route's set-up and gradient sum (scalar: memory-bound passes over the entries) ---- */
+
+/* recs (C * N, S) float32, 64-byte aligned by the caller: per camera and Gaussian one record, mx, my (means2d
+   (C, N, 2)), a, b, c (conics (C, N, 3)), opacity and sigma_max ((N,)), its D colour channels (colours at
+   col + c * col_cam_stride + g * D: stride 0 for colours shared by the cameras), then its pixel box (gboxes
+   (C, N, 4) int32) as int32. One sequential pass; the kernels then read one record (one cache line for S = 16)
+   per tile-list entry instead of _pack's copy. Returns the fragment slots the C kernels need for all the
+   entries (ev3dgs_raster_prep's frag_start[K]): _bin puts a Gaussian in every tile its box touches, so its
+   entries' boxes split its box by tile columns and rows: (rows) x (8 per group of 8 columns, per tile column). */
+int64_t ev3dgs_raster_records(float *recs, int64_t S, int64_t C, int64_t N, int64_t D, const float *m2d,
+                           const float *con, const float *col, int64_t col_cam_stride, const float *opac,
+                           const float *smax, const int32_t *gbox)
+{
+    int64_t total = 0;
+    for (int64_t c = 0; c < C; c++)
+        for (int64_t g = 0; g < N; g++) {
+            int64_t cg = c * N + g;
+            float *r = recs + cg * S;
+            r[0] = m2d[2 * cg];
+            r[1] = m2d[2 * cg + 1];
+            r[2] = con[3 * cg];
+            r[3] = con[3 * cg + 1];
+            r[4] = con[3 * cg + 2];
+            r[5] = opac[g];
+            r[6] = smax[g];
+            for (int64_t d = 0; d < D; d++) r[7 + d] = col[c * col_cam_stride + g * D + d];
+            const int32_t *b = gbox + 4 * cg;
+            memcpy(r + 7 + D, b, 4 * sizeof(int32_t));
+            for (int64_t j = 11 + D; j < S; j++) r[j] = 0.0f;
+            if (b[0] > b[1] || b[2] > b[3]) continue;
+            int64_t groups = 0;
+            for (int64_t tx = b[0] / TILE; tx <= b[1] / TILE; tx++) {
+                int64_t lo = b[0] > tx * TILE ? b[0] : tx * TILE;
+                int64_t hi = b[1] < tx * TILE + TILE - 1 ? b[1] : tx * TILE + TILE - 1;
+                groups += (hi - lo) / 8 + 1;
+            }
+            total += (int64_t)(b[3] - b[2] + 1) * groups * 8;
+        }
+    return total;
+}
+
+typedef struct {
+    const int64_t *ids, *offsets;
+    const float *recs;
+    int64_t S, D, N, width, height, tiles_x, n_tiles, gt0, gt1;
+    float *params;
+    int32_t *boxes;
+    int64_t *slots;            /* NULL, or (K + 1,): entry k's slot count at k + 1 */
+} pack_t;
+
+static void *pack_tiles(void *arg)
+{
+    const pack_t *p = arg;
+    int64_t S = p->S, D = p->D, R = 7 + D;
+    for (int64_t gt = p->gt0; gt < p->gt1; gt++) {
+        int64_t cam = gt / p->n_tiles, tile = gt % p->n_tiles;
+        int64_t x0 = (tile % p->tiles_x) * TILE, y0 = (tile / p->tiles_x) * TILE;
+        int64_t w = p->width - x0 < TILE ? p->width - x0 : TILE, h = p->height - y0 < TILE ? p->height - y0 : TILE;
+        const float *rec0 = p->recs + cam * p->N * S;
+        for (int64_t k = p->offsets[gt], end = p->offsets[gt + 1]; k < end; k++) {
+            if (k + 8 < end) __builtin_prefetch(rec0 + p->ids[k + 8] * S);
+            const float *r = rec0 + p->ids[k] * S;
+            float *q = p->params + k * R;
+            for (int64_t j = 0; j < R; j++) q[j] = r[j];
+            int32_t gb[4];
+            memcpy(gb, r + R, sizeof gb);
+            int32_t bx0 = gb[0] > x0 ? gb[0] : (int32_t)x0, bx1 = gb[1] < x0 + w - 1 ? gb[1] : (int32_t)(x0 + w - 1);
+            int32_t by0 = gb[2] > y0 ? gb[2] : (int32_t)y0, by1 = gb[3] < y0 + h - 1 ? gb[3] : (int32_t)(y0 + h - 1);
+            if (bx0 > bx1 || by0 > by1) bx0 = 0, bx1 = -1, by0 = 0, by1 = -1;
+            int32_t *b = p->boxes + 4 * k;
+            b[0] = bx0, b[1] = bx1, b[2] = by0, b[3] = by1;
+            if (p->slots) p->slots[k + 1] = bx0 <= bx1 ? (int64_t)(by1 - by0 + 1) * ((bx1 - bx0) / 8 + 1) * 8 : 0;
+        }
+    }
+    return NULL;
+}
+
+/* cpu_tiles._pack from the records: entry k's params row (mx, my, a, b, c, opacity, sigma_max, colour...: its
+   Gaussian's record, copied) and its pixel box clipped to its tile ((0, -1, 0, -1) when empty), exactly
+   _pack's values; with frag_start, the C kernels' fragment slots per entry (8 per row and group of 8 columns
+   of the box, as cpu_simd.fragment_slots counts them): frag_start[k] ... frag_start[k + 1] - 1, and the
+   total returned. One record gathered per entry (prefetched a few entries ahead) instead of six arrays;
+   tiles split over n_threads threads in contiguous ranges of about equal entry counts. */
+int64_t ev3dgs_raster_pack(const int64_t *ids, const int64_t *offsets, const float *recs, int64_t S, int64_t D,
+                           int64_t C, int64_t N, int64_t width, int64_t height, int64_t tiles_x, float *params,
+                           int32_t *boxes, int64_t *frag_start, int64_t n_threads)
+{
+    int64_t n_tiles = tiles_x * ((height + TILE - 1) / TILE), G = C * n_tiles, K = offsets[G];
+    if (n_threads < 1) n_threads = 1;
+    if (n_threads > MAX_THREADS) n_threads = MAX_THREADS;
+    if (K < 65536) n_threads = 1;
+    pack_t parts[MAX_THREADS];
+    pthread_t tid[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    int64_t gt = 0;
+    for (int64_t t = 0; t < n_threads; t++) {
+        int64_t gt0 = gt, target = K * (t + 1) / n_threads;
+        while (gt < G && offsets[gt + 1] <= target) gt++;
+        if (t == n_threads - 1) gt = G;
+        parts[t] = (pack_t){ids, offsets, recs, S, D, N, width, height, tiles_x, n_tiles, gt0, gt, params, boxes,
+                            frag_start};
+    }
+    for (int64_t t = 1; t < n_threads; t++) started[t] = pthread_create(&tid[t], NULL, pack_tiles, &parts[t]) == 0;
+    pack_tiles(&parts[0]);
+    for (int64_t t = 1; t < n_threads; t++) {
+        if (started[t]) pthread_join(tid[t], NULL);
+        else pack_tiles(&parts[t]);
+    }
+    if (!frag_start) return 0;
+    frag_start[0] = 0;
+    for (int64_t k = 0; k < K; k++) frag_start[k + 1] += frag_start[k];
+    return frag_start[K];
+}
+
+typedef struct {
+    const float *per_pair;
+    const int64_t *ids, *offsets;
+    int64_t c0, c1, n_tiles, N, D;
+    float *acc, *g_mean, *g_conic, *g_op, *g_col;
+} reduce_t;
+
+static void *reduce_cameras(void *arg)
+{
+    const reduce_t *r = arg;
+    int64_t N = r->N, D = r->D, R = 6 + D;
+    for (int64_t c = r->c0; c < r->c1; c++) {
+        float *acc = r->acc + c * N * R;     /* one row of 6 + D sums per Gaussian: one or two cache lines */
+        memset(acc, 0, sizeof(float) * (size_t)(N * R));
+        for (int64_t k = r->offsets[c * r->n_tiles], end = r->offsets[(c + 1) * r->n_tiles]; k < end; k++) {
+            float *a = acc + r->ids[k] * R;
+            const float *pp = r->per_pair + k * R;
+            for (int64_t j = 0; j < R; j++) a[j] += pp[j];
+        }
+        for (int64_t g = 0; g < N; g++) {
+            const float *a = acc + g * R;
+            int64_t cg = c * N + g;
+            r->g_mean[2 * cg] = a[0];
+            r->g_mean[2 * cg + 1] = a[1];
+            r->g_conic[3 * cg] = a[2];
+            r->g_conic[3 * cg + 1] = a[3];
+            r->g_conic[3 * cg + 2] = a[4];
+            r->g_op[cg] = a[5];
+            for (int64_t d = 0; d < D; d++) r->g_col[cg * D + d] = a[6 + d];
+        }
+    }
+    return NULL;
+}
+
+/* cpu_backward._reduce: per camera a serial sum of the entries' rows in tile-list order (the same float32
+   additions in the same order, from 0: bitwise its result), into one row of sums per Gaussian (acc, (C, N,
+   6 + D) scratch), then split into g_mean (C, N, 2), g_conic (C, N, 3), g_op (C, N), g_col (C, N, D).
+   Cameras split over up to n_threads threads (each camera's sum is one thread's). */
+int ev3dgs_raster_reduce(const float *per_pair, const int64_t *ids, const int64_t *offsets, int64_t C,
+                         int64_t n_tiles, int64_t N, int64_t D, float *acc, float *g_mean, float *g_conic,
+                         float *g_op, float *g_col, int64_t n_threads)
+{
+    if (D < 1 || D > DMAX) return -1;
+    if (n_threads > C) n_threads = C;
+    if (n_threads < 1) n_threads = 1;
+    if (n_threads > MAX_THREADS) n_threads = MAX_THREADS;
+    reduce_t parts[MAX_THREADS];
+    pthread_t tid[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int64_t t = 0; t < n_threads; t++)
+        parts[t] = (reduce_t){per_pair, ids, offsets, C * t / n_threads, C * (t + 1) / n_threads, n_tiles, N, D,
+                              acc, g_mean, g_conic, g_op, g_col};
+    for (int64_t t = 1; t < n_threads; t++) started[t] = pthread_create(&tid[t], NULL, reduce_cameras, &parts[t]) == 0;
+    reduce_cameras(&parts[0]);
+    for (int64_t t = 1; t < n_threads; t++) {
+        if (started[t]) pthread_join(tid[t], NULL);
+        else reduce_cameras(&parts[t]);
+    }
+    return 0;
 }
 
 static PyMethodDef methods[] = {{NULL, NULL, 0, NULL}};
@@ -410,12 +588,21 @@ static inline __attribute__((always_inline)) TARGET void SUF(backward_impl)(cons
             }
         }
     if (kmax > end) kmax = end;
+    if (job->write_rows)  /* every row written (no zeroed buffer): the entries after every pixel's last, 0 */
+        memset(job->per_pair + kmax * (6 + D), 0, sizeof(float) * (size_t)((end - kmax) * (6 + D)));
     for (int64_t k = kmax - 1; k >= start; k--) {
-        if (job->record && job->frag_n[k] == 0) continue;  /* per_pair[k] stays 0 */
+        if (job->record && job->frag_n[k] == 0) {  /* per_pair[k] stays 0 (or is written 0) */
+            if (job->write_rows) memset(job->per_pair + k * (6 + D), 0, sizeof(float) * (size_t)(6 + D));
+            continue;
+        }
+        float *pp = job->per_pair + k * (6 + D);
         const float *q = job->params + k * stride;
         const int32_t *bx = job->boxes + 4 * k;
         int32_t bx0 = bx[0], bx1 = bx[1], by0 = bx[2], by1 = bx[3];
-        if (bx0 > bx1 || by0 > by1) continue;
+        if (bx0 > bx1 || by0 > by1) {
+            if (job->write_rows) memset(pp, 0, sizeof(float) * (size_t)(6 + D));
+            continue;
+        }
         float mx = q[0], my = q[1];
         v8f a = SUF(bcast)(q[2]), b = SUF(bcast)(q[3]), c = SUF(bcast)(q[4]), o = SUF(bcast)(q[5]);
         v8f smax = SUF(bcast)(q[6]);
@@ -478,13 +665,21 @@ static inline __attribute__((always_inline)) TARGET void SUF(backward_impl)(cons
                 gc = gc + d_sigma * half * dy * dy;
                 go = go + d_alpha * SUF(sel)(gm, e, zero);
         ITEMS_END
-        float *pp = job->per_pair + k * (6 + D);
-        pp[0] += SUF(hsum)(gmx);
-        pp[1] += SUF(hsum)(gmy);
-        pp[2] += SUF(hsum)(ga);
-        pp[3] += SUF(hsum)(gb);
-        pp[4] += SUF(hsum)(gc);
-        pp[5] += SUF(hsum)(go);
+        if (job->write_rows) {  /* not zeroed before: 0 + x, the same values as += on a zeroed row */
+            pp[0] = 0.0f + SUF(hsum)(gmx);
+            pp[1] = 0.0f + SUF(hsum)(gmy);
+            pp[2] = 0.0f + SUF(hsum)(ga);
+            pp[3] = 0.0f + SUF(hsum)(gb);
+            pp[4] = 0.0f + SUF(hsum)(gc);
+            pp[5] = 0.0f + SUF(hsum)(go);
+        } else {
+            pp[0] += SUF(hsum)(gmx);
+            pp[1] += SUF(hsum)(gmy);
+            pp[2] += SUF(hsum)(ga);
+            pp[3] += SUF(hsum)(gb);
+            pp[4] += SUF(hsum)(gc);
+            pp[5] += SUF(hsum)(go);
+        }
         for (int64_t d = 0; d < D; d++) pp[6 + d] = SUF(hsum)(gcol[d]);
     }
 }

@@ -90,7 +90,7 @@ class Job(ctypes.Structure):
                 ("background", _P), ("D", _I), ("width", _I), ("height", _I), ("tiles_x", _I), ("n_tiles", _I),
                 ("image", _P), ("t_final", _P), ("last", _P), ("frag_start", _P), ("frag_e", _P),
                 ("frag_n", _P), ("record", _I), ("grad_image", _P), ("grad_alpha", _P), ("per_pair", _P),
-                ("n_threads", _I), ("isa", _I), ("tile_ns", _P)]
+                ("n_threads", _I), ("isa", _I), ("tile_ns", _P), ("write_rows", _I)]
 
 
 _lib = None
@@ -108,6 +108,12 @@ def _load():
         lib.ev3dgs_raster_isa.restype = ctypes.c_int
         lib.ev3dgs_exp_neg.argtypes = [_P, _P, _I, _I]
         lib.ev3dgs_exp_neg.restype = None
+        lib.ev3dgs_raster_records.argtypes = [_P, _I, _I, _I, _I, _P, _P, _P, _I, _P, _P, _P]
+        lib.ev3dgs_raster_records.restype = ctypes.c_int64
+        lib.ev3dgs_raster_pack.argtypes = [_P, _P, _P, _I, _I, _I, _I, _I, _I, _I, _P, _P, _P, _I]
+        lib.ev3dgs_raster_pack.restype = ctypes.c_int64
+        lib.ev3dgs_raster_reduce.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I]
+        lib.ev3dgs_raster_reduce.restype = ctypes.c_int
         _lib = lib
     return _lib
 
@@ -164,6 +170,60 @@ def _keep_tile_ns(kind, job):
         TILE_TIMES.append((kind, _pending.pop("tile_ns")))
 
 
+def _aligned(shape, dtype, align=64) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data starts on an ``align``-byte boundary."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape))
+    raw = np.empty(n * dtype.itemsize + align, np.uint8)
+    off = (-raw.ctypes.data) % align
+    return raw[off:off + n * dtype.itemsize].view(dtype).reshape(shape)
+
+
+def record_stride(channels: int) -> int:
+    """float32 words per Gaussian record: 7 + D values and 4 box ints, padded to 16 (one 64-byte cache line,
+    D <= 5) or 32."""
+    return 16 if 11 + channels <= 16 else 32
+
+
+def records(means2d, conics, colors, opacities, sigma_max, gboxes) -> tuple:
+    """(recs, slots): recs (C * N, record_stride(D)) float32, 64-byte aligned, per camera and Gaussian its kernel
+    inputs and pixel box (see _raster.c's ev3dgs_raster_records; colours (C, N, D) or shared (N, D)); slots:
+    the fragment slots all the tile-list entries take (as ``prep`` counts them per entry)."""
+    C, N = gboxes.shape[:2]
+    D = colors.shape[-1]
+    S = record_stride(D)
+    recs = _aligned((C * N, S), np.float32)
+    slots = _load().ev3dgs_raster_records(_ptr(recs), S, C, N, D, _ptr(means2d), _ptr(conics), _ptr(colors),
+                                          0 if colors.ndim == 2 else N * D, _ptr(opacities), _ptr(sigma_max),
+                                          _ptr(gboxes))
+    return recs, int(slots)
+
+
+def pack(recs, ids, offsets, C, N, D, width, height, slots: bool, n_threads: int):
+    """cpu_tiles._pack's (params, boxes), bitwise, from the records; with ``slots`` also frag_start (K + 1,):
+    entry k's fragment slots are frag_start[k] ... frag_start[k + 1] - 1 (as fragment_slots counts them),
+    else None. See _raster.c's ev3dgs_raster_pack."""
+    K = len(ids)
+    params, boxes = np.empty((K, 7 + D), np.float32), np.empty((K, 4), np.int32)
+    start = np.empty(K + 1, np.int64) if slots else None
+    _load().ev3dgs_raster_pack(_ptr(ids), _ptr(offsets), _ptr(recs), recs.shape[1], D, C, N, width, height,
+                               -(-width // 16), _ptr(params), _ptr(boxes), _ptr(start), n_threads)
+    return params, boxes, start
+
+
+def reduce(per_pair, ids, offsets, C, N, n_threads):
+    """cpu_backward._reduce's result (bitwise: the same float32 sums in the same order), cameras in parallel."""
+    D = per_pair.shape[1] - 6
+    acc = np.empty((C, N, 6 + D), np.float32)
+    g_mean, g_conic = np.empty((C, N, 2), np.float32), np.empty((C, N, 3), np.float32)
+    g_op, g_col = np.empty((C, N), np.float32), np.empty((C, N, D), np.float32)
+    if _load().ev3dgs_raster_reduce(_ptr(per_pair), _ptr(ids), _ptr(offsets), C, (len(offsets) - 1) // C, N, D,
+                                    _ptr(acc), _ptr(g_mean), _ptr(g_conic), _ptr(g_op), _ptr(g_col),
+                                    n_threads) != 0:
+        raise ValueError("C rasterizer: unsupported channel count")
+    return g_mean, g_conic, g_op, g_col
+
+
 def forward(params, boxes, offsets, work, background, width, height, tiles_x, image, t_final, last, frags,
             n_threads):
     """cpu._forward's contract (float32); frags = (frag_start, frag_e, frag_n), frag_n empty: not recorded."""
@@ -172,22 +232,23 @@ def forward(params, boxes, offsets, work, background, width, height, tiles_x, im
     n_tiles = tiles_x * (-(-height // 16))
     job = Job(_ptr(params), _ptr(boxes), _ptr(offsets), _ptr(work), len(work), _ptr(background),
               image.shape[3], width, height, tiles_x, n_tiles, _ptr(image), _ptr(t_final), _ptr(last),
-              _ptr(start), _ptr(fe), _ptr(fn), int(record), None, None, None, n_threads, ISA, _tile_ns(offsets))
+              _ptr(start), _ptr(fe), _ptr(fn), int(record), None, None, None, n_threads, ISA, _tile_ns(offsets), 0)
     if _load().ev3dgs_raster_forward(ctypes.byref(job)) != 0:
         raise ValueError("C rasterizer: unsupported channel count")
     _keep_tile_ns("forward", job)
 
 
 def backward(params, boxes, offsets, work, background, width, height, tiles_x, t_final, last, grad_image,
-             grad_alpha, per_pair, frags, n_threads):
-    """cpu_backward._backward's contract (float32): per_pair[k] gets entry k's gradient."""
+             grad_alpha, per_pair, frags, n_threads, write_rows=False):
+    """cpu_backward._backward's contract (float32): per_pair[k] gets entry k's gradient, added to it, or with
+    ``write_rows`` written (every row, 0 for an entry without fragments: per_pair need not be zeroed)."""
     start, fe, fn = frags
     record = len(fn) == len(params) and len(params) > 0
     n_tiles = tiles_x * (-(-height // 16))
     job = Job(_ptr(params), _ptr(boxes), _ptr(offsets), _ptr(work), len(work), _ptr(background),
               per_pair.shape[1] - 6, width, height, tiles_x, n_tiles, None, _ptr(t_final), _ptr(last),
               _ptr(start), _ptr(fe), _ptr(fn), int(record), _ptr(grad_image), _ptr(grad_alpha), _ptr(per_pair),
-              n_threads, ISA, _tile_ns(offsets))
+              n_threads, ISA, _tile_ns(offsets), int(write_rows))
     if _load().ev3dgs_raster_backward(ctypes.byref(job)) != 0:
         raise ValueError("C rasterizer: unsupported channel count")
     _keep_tile_ns("backward", job)
