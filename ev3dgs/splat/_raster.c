@@ -351,6 +351,459 @@ int ev3dgs_raster_reduce(const float *per_pair, const int64_t *ids, const int64_
     return 0;
 }
 
+/* ---- projection + SH colours (float32 inputs, float64 arithmetic): project_cpu's kernels in C ---- */
+/* The numba kernels project_cpu._project_forward / _project_backward written out in C: the same float64
+   operations in the same order (compiled with -ffp-contract=off: no fused multiply-adds), the same libm
+   sqrt / log / ceil, so every output is bitwise theirs (tested). Gaussians split over threads in contiguous
+   ranges (the backward in blocks of VM_BLOCK, whose camera-gradient partial sums are per block): the result
+   does not depend on the thread count. Inputs float32 (the trainer's dtype), outputs float32 (rounded from
+   the float64 result, as the numba path's float32 outputs and .to(float32) conversions round). */
+#include <math.h>
+
+#define VM_BLOCK 256
+static const double SH_C0 = 0.28209479177387814, SH_C1 = 0.4886025119029199;
+static const double SH_C2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+                                0.5462742152960396};
+static const double SH_C3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+                                -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+
+typedef struct {
+    const float *means, *quats, *scales, *opac, *sh;  /* (N,3) (N,4) (N,3) (N,) (N,KS,3) */
+    int64_t N, C, KS, deg, width, height;
+    const double *vm, *campos, *cam;                  /* (C,4,4) (C,3) (C,8) */
+    double near_, far_, eps2d, alpha_min, radius_margin;
+    float *means2d, *conics, *depths, *colors;        /* forward outputs (C,N,2) (C,N,3) (C,N) (C,N,3) */
+    int32_t *radii;                                   /* (C,N) */
+    const float *g_m2d, *g_con, *g_dep, *g_col;       /* backward inputs (C,N,2) (C,N,3) (C,N) (C,N,3) */
+    float *g_means, *g_quats, *g_scales, *g_sh;       /* backward outputs (N,3) (N,4) (N,3) (N,KS,3) */
+    int64_t want_vm;
+    double *g_vm;                                     /* (blocks, C, 15) */
+    int64_t n_threads;
+} proj_t;
+
+/* Python's max(a, b) / min(a, b) on floats (the first argument unless the second compares greater/less) */
+static inline double pmax(double a, double b) { return b > a ? b : a; }
+static inline double pmin(double a, double b) { return b < a ? b : a; }
+static inline int finite_d(double x) { return isfinite(x); }
+
+static void rotmat(double qw, double qx, double qy, double qz, double r[9])
+{
+    r[0] = 1.0 - 2.0 * (qy * qy + qz * qz); r[1] = 2.0 * (qx * qy - qw * qz); r[2] = 2.0 * (qx * qz + qw * qy);
+    r[3] = 2.0 * (qx * qy + qw * qz); r[4] = 1.0 - 2.0 * (qx * qx + qz * qz); r[5] = 2.0 * (qy * qz - qw * qx);
+    r[6] = 2.0 * (qx * qz - qw * qy); r[7] = 2.0 * (qy * qz + qw * qx); r[8] = 1.0 - 2.0 * (qx * qx + qy * qy);
+}
+
+static void sh_basis(int64_t deg, double x, double y, double z, double *out)
+{
+    out[0] = SH_C0;
+    if (deg >= 1) {
+        out[1] = -SH_C1 * y;
+        out[2] = SH_C1 * z;
+        out[3] = -SH_C1 * x;
+    }
+    if (deg >= 2) {
+        double xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+        out[4] = SH_C2[0] * xy;
+        out[5] = SH_C2[1] * yz;
+        out[6] = SH_C2[2] * (2.0 * zz - xx - yy);
+        out[7] = SH_C2[3] * xz;
+        out[8] = SH_C2[4] * (xx - yy);
+        if (deg >= 3) {
+            out[9] = SH_C3[0] * y * (3.0 * xx - yy);
+            out[10] = SH_C3[1] * xy * z;
+            out[11] = SH_C3[2] * y * (4.0 * zz - xx - yy);
+            out[12] = SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy);
+            out[13] = SH_C3[4] * x * (4.0 * zz - xx - yy);
+            out[14] = SH_C3[5] * z * (xx - yy);
+            out[15] = SH_C3[6] * x * (xx - 3.0 * yy);
+        }
+    }
+}
+
+static void sh_basis_vjp(int64_t deg, double x, double y, double z, const double *gb, double *ox, double *oy,
+                         double *oz)
+{
+    double gx = 0.0, gy = 0.0, gz = 0.0, g;
+    if (deg >= 1) {
+        gy -= SH_C1 * gb[1];
+        gz += SH_C1 * gb[2];
+        gx -= SH_C1 * gb[3];
+    }
+    if (deg >= 2) {
+        double xx = x * x, yy = y * y, zz = z * z;
+        g = SH_C2[0] * gb[4]; gx += g * y; gy += g * x;
+        g = SH_C2[1] * gb[5]; gy += g * z; gz += g * y;
+        g = SH_C2[2] * gb[6]; gx -= 2.0 * g * x; gy -= 2.0 * g * y; gz += 4.0 * g * z;
+        g = SH_C2[3] * gb[7]; gx += g * z; gz += g * x;
+        g = SH_C2[4] * gb[8]; gx += 2.0 * g * x; gy -= 2.0 * g * y;
+        if (deg >= 3) {
+            g = SH_C3[0] * gb[9]; gx += g * 6.0 * x * y; gy += g * (3.0 * xx - 3.0 * yy);
+            g = SH_C3[1] * gb[10]; gx += g * y * z; gy += g * x * z; gz += g * x * y;
+            g = SH_C3[2] * gb[11]; gx -= g * 2.0 * x * y; gy += g * (4.0 * zz - xx - 3.0 * yy); gz += g * 8.0 * y * z;
+            g = SH_C3[3] * gb[12]; gx -= g * 6.0 * x * z; gy -= g * 6.0 * y * z;
+            gz += g * (6.0 * zz - 3.0 * xx - 3.0 * yy);
+            g = SH_C3[4] * gb[13]; gx += g * (4.0 * zz - 3.0 * xx - yy); gy -= g * 2.0 * x * y; gz += g * 8.0 * x * z;
+            g = SH_C3[5] * gb[14]; gx += g * 2.0 * x * z; gy -= g * 2.0 * y * z; gz += g * (xx - yy);
+            g = SH_C3[6] * gb[15]; gx += g * (3.0 * xx - 3.0 * yy); gy -= g * 6.0 * x * y;
+        }
+    }
+    *ox = gx, *oy = gy, *oz = gz;
+}
+
+static int finite_row(const proj_t *p, int64_t n)
+{
+    int ok = finite_d(p->opac[n]);
+    for (int i = 0; i < 3; i++) ok = ok && finite_d(p->means[3 * n + i]) && finite_d(p->scales[3 * n + i]);
+    for (int i = 0; i < 4; i++) ok = ok && finite_d(p->quats[4 * n + i]);
+    return ok;
+}
+
+typedef struct {
+    double px, py, pz, qw, qx, qy, qz, inv, sq, sx, sy, sz;
+} ginputs_t;
+
+static void inputs(const proj_t *p, int64_t n, int finite, ginputs_t *g)
+{
+    if (finite) {
+        g->px = p->means[3 * n], g->py = p->means[3 * n + 1], g->pz = p->means[3 * n + 2];
+        g->qw = p->quats[4 * n], g->qx = p->quats[4 * n + 1], g->qy = p->quats[4 * n + 2], g->qz = p->quats[4 * n + 3];
+        g->sx = p->scales[3 * n], g->sy = p->scales[3 * n + 1], g->sz = p->scales[3 * n + 2];
+    } else {
+        g->px = g->py = g->pz = 0.0;
+        g->qw = g->qx = g->qy = g->qz = 1.0;
+        g->sx = g->sy = g->sz = 1.0;
+    }
+    g->sq = g->qw * g->qw + g->qx * g->qx + g->qy * g->qy + g->qz * g->qz;
+    g->inv = 1.0 / sqrt(pmax(g->sq, 1e-24));
+}
+
+static void sigma3(const ginputs_t *g, double r[9], double m[9], double S[9])
+{
+    rotmat(g->qw * g->inv, g->qx * g->inv, g->qy * g->inv, g->qz * g->inv, r);
+    m[0] = r[0] * g->sx, m[1] = r[1] * g->sy, m[2] = r[2] * g->sz;
+    m[3] = r[3] * g->sx, m[4] = r[4] * g->sy, m[5] = r[5] * g->sz;
+    m[6] = r[6] * g->sx, m[7] = r[7] * g->sy, m[8] = r[8] * g->sz;
+    double s00 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+    double s01 = m[0] * m[3] + m[1] * m[4] + m[2] * m[5];
+    double s02 = m[0] * m[6] + m[1] * m[7] + m[2] * m[8];
+    double s11 = m[3] * m[3] + m[4] * m[4] + m[5] * m[5];
+    double s12 = m[3] * m[6] + m[4] * m[7] + m[5] * m[8];
+    double s22 = m[6] * m[6] + m[7] * m[7] + m[8] * m[8];
+    S[0] = s00, S[1] = s01, S[2] = s02, S[3] = s01, S[4] = s11, S[5] = s12, S[6] = s02, S[7] = s12, S[8] = s22;
+}
+
+typedef struct {
+    double x, y, zr, z, xz, yz, cxz, cyz;
+    int valid;
+} camp_t;
+
+static void camera_point(const proj_t *p, int64_t c, const ginputs_t *g, int finite, camp_t *o)
+{
+    const double *v = p->vm + 16 * c, *cam = p->cam + 8 * c;
+    o->x = v[0] * g->px + v[1] * g->py + v[2] * g->pz + v[3];
+    o->y = v[4] * g->px + v[5] * g->py + v[6] * g->pz + v[7];
+    o->zr = v[8] * g->px + v[9] * g->py + v[10] * g->pz + v[11];
+    o->valid = o->zr > p->near_ && o->zr < p->far_ && finite;
+    o->z = o->valid ? o->zr : 1.0;
+    o->xz = o->x / o->z, o->yz = o->y / o->z;
+    o->cxz = pmin(pmax(o->xz, -cam[4]), cam[5]);
+    o->cyz = pmin(pmax(o->yz, -cam[6]), cam[7]);
+}
+
+static double jw(const proj_t *p, int64_t c, double fx, double fy, double z, double tx, double ty, double t0[3],
+                 double t1[3])
+{
+    const double *v = p->vm + 16 * c;
+    double rz = 1.0 / z;
+    double j00 = fx * rz, j02 = -fx * tx * rz * rz, j11 = fy * rz, j12 = -fy * ty * rz * rz;
+    t0[0] = j00 * v[0] + j02 * v[8], t0[1] = j00 * v[1] + j02 * v[9], t0[2] = j00 * v[2] + j02 * v[10];
+    t1[0] = j11 * v[4] + j12 * v[8], t1[1] = j11 * v[5] + j12 * v[9], t1[2] = j11 * v[6] + j12 * v[10];
+    return rz;
+}
+
+static void cov2d(const double t0[3], const double t1[3], const double S[9], double eps2d, double *c11, double *c12,
+                  double *c22)
+{
+    double u0 = S[0] * t0[0] + S[1] * t0[1] + S[2] * t0[2];
+    double u1 = S[3] * t0[0] + S[4] * t0[1] + S[5] * t0[2];
+    double u2 = S[6] * t0[0] + S[7] * t0[1] + S[8] * t0[2];
+    double v0 = S[0] * t1[0] + S[1] * t1[1] + S[2] * t1[2];
+    double v1 = S[3] * t1[0] + S[4] * t1[1] + S[5] * t1[2];
+    double v2 = S[6] * t1[0] + S[7] * t1[1] + S[8] * t1[2];
+    *c11 = t0[0] * u0 + t0[1] * u1 + t0[2] * u2 + eps2d;
+    *c12 = t0[0] * v0 + t0[1] * v1 + t0[2] * v2;
+    *c22 = t1[0] * v0 + t1[1] * v1 + t1[2] * v2 + eps2d;
+}
+
+/* numba's int(math.ceil(v)) then float: x86's conversion of an out-of-range or NaN value, INT64_MIN */
+static double ceil_as_int(double v)
+{
+    double c = ceil(v);
+    return (c >= -9223372036854775808.0 && c < 9223372036854775808.0) ? (double)(int64_t)c : -9223372036854775808.0;
+}
+
+typedef struct {
+    const proj_t *p;
+    int64_t lo, hi;
+} prange_t;
+
+static void *project_forward_range(void *arg)
+{
+    const prange_t *rg = arg;
+    const proj_t *p = rg->p;
+    int64_t N = p->N, C = p->C, deg = p->deg, K = (deg + 1) * (deg + 1), KS = p->KS;
+    double basis[16];
+    for (int64_t n = rg->lo; n < rg->hi; n++) {
+        int finite = finite_row(p, n);
+        ginputs_t g;
+        inputs(p, n, finite, &g);
+        double r9[9], m9[9], S[9];
+        sigma3(&g, r9, m9, S);
+        double o = finite ? (double)p->opac[n] : 1.0;
+        for (int64_t c = 0; c < C; c++) {
+            const double *cam = p->cam + 8 * c;
+            double fx = cam[0], fy = cam[1];
+            camp_t cp;
+            camera_point(p, c, &g, finite, &cp);
+            double t0[3], t1[3], c11, c12, c22;
+            jw(p, c, fx, fy, cp.z, cp.z * cp.cxz, cp.z * cp.cyz, t0, t1);
+            cov2d(t0, t1, S, p->eps2d, &c11, &c12, &c22);
+            double det = pmax(c11 * c22 - c12 * c12, 1e-12);
+            int64_t cn = c * N + n;
+            p->conics[3 * cn] = (float)(c22 / det);
+            p->conics[3 * cn + 1] = (float)(-c12 / det);
+            p->conics[3 * cn + 2] = (float)(c11 / det);
+            double mx = fx * cp.xz + cam[2], my = fy * cp.yz + cam[3];
+            p->means2d[2 * cn] = (float)mx;
+            p->means2d[2 * cn + 1] = (float)my;
+            p->depths[cn] = (float)cp.zr;
+            double r = 0.0;
+            if (cp.valid && finite && !(o < p->alpha_min)) {
+                double extent = sqrt(2.0 * pmax(log(255.0 * o), 0.0));
+                double mid = 0.5 * (c11 + c22);
+                double lam = mid + sqrt(pmax(mid * mid - (c11 * c22 - c12 * c12), 0.1));
+                r = ceil_as_int(extent * sqrt(pmax(lam, 0.0)) * (1.0 + p->radius_margin));
+                if (!finite_d(r)) r = 0.0;
+                else if (r < 1.0) r = 1.0;
+                if (mx + r < -0.5 || mx - r > p->width - 0.5 || my + r < -0.5 || my - r > p->height - 0.5
+                    || !finite_d(mx) || !finite_d(my))
+                    r = 0.0;
+            }
+            p->radii[cn] = (int32_t)(int64_t)pmin(r, 1073741824.0);
+            if (deg >= 0) {
+                const double *cpos = p->campos + 3 * c;
+                double dx = g.px - cpos[0], dy = g.py - cpos[1], dz = g.pz - cpos[2];
+                double d2 = pmax(dx * dx + dy * dy + dz * dz, 1e-24);
+                double di = 1.0 / sqrt(d2);
+                sh_basis(deg, dx * di, dy * di, dz * di, basis);
+                for (int ch = 0; ch < 3; ch++) {
+                    double acc = 0.0;
+                    for (int64_t k = 0; k < K; k++) acc += basis[k] * (double)p->sh[(n * KS + k) * 3 + ch];
+                    p->colors[3 * cn + ch] = (float)pmax(acc + 0.5, 0.0);
+                }
+            }
+        }
+    }
+    return NULL;
+}
+
+static void *project_backward_range(void *arg)
+{
+    const prange_t *rg = arg;   /* lo, hi: blocks */
+    const proj_t *p = rg->p;
+    int64_t N = p->N, C = p->C, deg = p->deg, K = (deg + 1) * (deg + 1), KS = p->KS;
+    double basis[16], gb[16], u[3], v[3], gS[9], gsh[16 * 3];
+    for (int64_t blk = rg->lo; blk < rg->hi; blk++) {
+        double *gvm = p->g_vm + blk * C * 15;
+        int64_t n1 = (blk + 1) * VM_BLOCK < N ? (blk + 1) * VM_BLOCK : N;
+        for (int64_t n = blk * VM_BLOCK; n < n1; n++) {
+            int finite = finite_row(p, n);
+            if (!finite) {  /* exactly zero gradient for the whole row */
+                for (int i = 0; i < 3; i++) p->g_means[3 * n + i] = 0.0f, p->g_scales[3 * n + i] = 0.0f;
+                for (int i = 0; i < 4; i++) p->g_quats[4 * n + i] = 0.0f;
+                if (deg >= 0) memset(p->g_sh + n * KS * 3, 0, sizeof(float) * (size_t)(KS * 3));
+                continue;
+            }
+            ginputs_t g;
+            inputs(p, n, finite, &g);
+            double r9[9], m9[9], S[9];
+            sigma3(&g, r9, m9, S);
+            double gpx = 0.0, gpy = 0.0, gpz = 0.0;
+            for (int i = 0; i < 9; i++) gS[i] = 0.0;
+            if (deg >= 0)
+                for (int i = 0; i < 48; i++) gsh[i] = 0.0;
+            for (int64_t c = 0; c < C; c++) {
+                const double *cam = p->cam + 8 * c, *vm = p->vm + 16 * c;
+                double fx = cam[0], fy = cam[1];
+                camp_t cp;
+                camera_point(p, c, &g, finite, &cp);
+                double z = cp.z, x = cp.x, y = cp.y, xz = cp.xz, yz = cp.yz, cxz = cp.cxz, cyz = cp.cyz;
+                double tx = z * cxz, ty = z * cyz;
+                double t0[3], t1[3], c11, c12, c22;
+                double rz = jw(p, c, fx, fy, z, tx, ty, t0, t1);
+                cov2d(t0, t1, S, p->eps2d, &c11, &c12, &c22);
+                double det_raw = c11 * c22 - c12 * c12;
+                double det = pmax(det_raw, 1e-12);
+                int64_t cn = c * N + n;
+                double ga = p->g_con[3 * cn], gbb = p->g_con[3 * cn + 1], gc = p->g_con[3 * cn + 2];
+                double g11 = gc / det, g12 = -gbb / det, g22 = ga / det;
+                if (det_raw >= 1e-12) {
+                    double gdet = -(ga * c22 - gbb * c12 + gc * c11) / (det * det);
+                    g11 += gdet * c22;
+                    g22 += gdet * c11;
+                    g12 -= 2.0 * gdet * c12;
+                }
+                double h = 0.5 * g12;
+                for (int i = 0; i < 3; i++)
+                    for (int j = 0; j < 3; j++)
+                        gS[i * 3 + j] += (g11 * t0[i] * t0[j] + h * (t0[i] * t1[j] + t1[i] * t0[j])
+                                          + g22 * t1[i] * t1[j]);
+                for (int i = 0; i < 3; i++) {
+                    u[i] = S[i * 3] * t0[0] + S[i * 3 + 1] * t0[1] + S[i * 3 + 2] * t0[2];
+                    v[i] = S[i * 3] * t1[0] + S[i * 3 + 1] * t1[1] + S[i * 3 + 2] * t1[2];
+                }
+                double gT0[3] = {2.0 * (g11 * u[0] + h * v[0]), 2.0 * (g11 * u[1] + h * v[1]),
+                                 2.0 * (g11 * u[2] + h * v[2])};
+                double gT1[3] = {2.0 * (h * u[0] + g22 * v[0]), 2.0 * (h * u[1] + g22 * v[1]),
+                                 2.0 * (h * u[2] + g22 * v[2])};
+                double gj00 = gT0[0] * vm[0] + gT0[1] * vm[1] + gT0[2] * vm[2];
+                double gj02 = gT0[0] * vm[8] + gT0[1] * vm[9] + gT0[2] * vm[10];
+                double gj11 = gT1[0] * vm[4] + gT1[1] * vm[5] + gT1[2] * vm[6];
+                double gj12 = gT1[0] * vm[8] + gT1[1] * vm[9] + gT1[2] * vm[10];
+                double grz = fx * gj00 + fy * gj11 - 2.0 * fx * tx * rz * gj02 - 2.0 * fy * ty * rz * gj12;
+                double gtx = -fx * rz * rz * gj02;
+                double gty = -fy * rz * rz * gj12;
+                double gz = -grz * rz * rz + gtx * cxz + gty * cyz;
+                double gxz = fx * (double)p->g_m2d[2 * cn];
+                double gyz = fy * (double)p->g_m2d[2 * cn + 1];
+                if (xz > -cam[4] && xz < cam[5]) gxz += gtx * z;
+                if (yz > -cam[6] && yz < cam[7]) gyz += gty * z;
+                double gx = gxz / z;
+                double gy = gyz / z;
+                gz -= (gxz * x + gyz * y) / (z * z);
+                double gzr = (double)p->g_dep[cn] + (cp.valid ? gz : 0.0);
+                gpx += vm[0] * gx + vm[4] * gy + vm[8] * gzr;
+                gpy += vm[1] * gx + vm[5] * gy + vm[9] * gzr;
+                gpz += vm[2] * gx + vm[6] * gy + vm[10] * gzr;
+                if (p->want_vm) {
+                    double j00 = fx * rz, j02 = -fx * tx * rz * rz, j11 = fy * rz, j12 = -fy * ty * rz * rz;
+                    double *gv = gvm + c * 15;
+                    for (int j = 0; j < 3; j++) {
+                        double pj = j == 0 ? g.px : (j == 1 ? g.py : g.pz);
+                        gv[j] += gx * pj + j00 * gT0[j];
+                        gv[4 + j] += gy * pj + j11 * gT1[j];
+                        gv[8 + j] += gzr * pj + j02 * gT0[j] + j12 * gT1[j];
+                    }
+                    gv[3] += gx;
+                    gv[7] += gy;
+                    gv[11] += gzr;
+                }
+                if (deg >= 0) {
+                    const double *cpos = p->campos + 3 * c;
+                    double dx = g.px - cpos[0], dy = g.py - cpos[1], dz = g.pz - cpos[2];
+                    double d2r = dx * dx + dy * dy + dz * dz;
+                    double d2 = pmax(d2r, 1e-24);
+                    double di = 1.0 / sqrt(d2);
+                    double ux = dx * di, uy = dy * di, uz = dz * di;
+                    sh_basis(deg, ux, uy, uz, basis);
+                    for (int64_t k = 0; k < K; k++) gb[k] = 0.0;
+                    for (int ch = 0; ch < 3; ch++) {
+                        double acc = 0.0;
+                        for (int64_t k = 0; k < K; k++) acc += basis[k] * (double)p->sh[(n * KS + k) * 3 + ch];
+                        if (acc + 0.5 >= 0.0) {
+                            double gcol = p->g_col[3 * cn + ch];
+                            for (int64_t k = 0; k < K; k++) {
+                                gsh[k * 3 + ch] += basis[k] * gcol;
+                                gb[k] += (double)p->sh[(n * KS + k) * 3 + ch] * gcol;
+                            }
+                        }
+                    }
+                    double gux, guy, guz;
+                    sh_basis_vjp(deg, ux, uy, uz, gb, &gux, &guy, &guz);
+                    double gdx = gux * di, gdy = guy * di, gdz = guz * di;
+                    if (d2r >= 1e-24) {
+                        double dot = (gux * dx + guy * dy + guz * dz) * di * di * di;
+                        gdx -= dx * dot;
+                        gdy -= dy * dot;
+                        gdz -= dz * dot;
+                    }
+                    gpx += gdx;
+                    gpy += gdy;
+                    gpz += gdz;
+                    if (p->want_vm) {
+                        double *gv = gvm + c * 15;
+                        gv[12] -= gdx;
+                        gv[13] -= gdy;
+                        gv[14] -= gdz;
+                    }
+                }
+            }
+            p->g_means[3 * n] = (float)gpx, p->g_means[3 * n + 1] = (float)gpy, p->g_means[3 * n + 2] = (float)gpz;
+            double gM[9];
+            for (int i = 0; i < 3; i++)
+                for (int j = 0; j < 3; j++) {
+                    double acc = 0.0;
+                    for (int k = 0; k < 3; k++) acc += (gS[i * 3 + k] + gS[k * 3 + i]) * m9[k * 3 + j];
+                    gM[i * 3 + j] = acc;
+                }
+            double gsx = gM[0] * r9[0] + gM[3] * r9[3] + gM[6] * r9[6];
+            double gsy = gM[1] * r9[1] + gM[4] * r9[4] + gM[7] * r9[7];
+            double gsz = gM[2] * r9[2] + gM[5] * r9[5] + gM[8] * r9[8];
+            p->g_scales[3 * n] = (float)gsx, p->g_scales[3 * n + 1] = (float)gsy, p->g_scales[3 * n + 2] = (float)gsz;
+            double G[9];
+            for (int i = 0; i < 3; i++) {
+                G[i * 3] = gM[i * 3] * g.sx;
+                G[i * 3 + 1] = gM[i * 3 + 1] * g.sy;
+                G[i * 3 + 2] = gM[i * 3 + 2] * g.sz;
+            }
+            double w = g.qw * g.inv, a = g.qx * g.inv, b = g.qy * g.inv, d = g.qz * g.inv;
+            double gw = 2.0 * (-G[1] * d + G[2] * b + G[3] * d - G[5] * a - G[6] * b + G[7] * a);
+            double ga_ = 2.0 * (G[1] * b + G[2] * d + G[3] * b - 2.0 * G[4] * a - G[5] * w + G[6] * d + G[7] * w
+                                - 2.0 * G[8] * a);
+            double gb_ = 2.0 * (-2.0 * G[0] * b + G[1] * a + G[2] * w + G[3] * a + G[5] * d - G[6] * w + G[7] * d
+                                - 2.0 * G[8] * b);
+            double gd = 2.0 * (-2.0 * G[0] * d - G[1] * w + G[2] * a + G[3] * w - 2.0 * G[4] * d + G[5] * b
+                               + G[6] * a + G[7] * b);
+            double dot = 0.0;
+            if (g.sq >= 1e-24) dot = (gw * g.qw + ga_ * g.qx + gb_ * g.qy + gd * g.qz) * g.inv * g.inv * g.inv;
+            p->g_quats[4 * n] = (float)(gw * g.inv - g.qw * dot);
+            p->g_quats[4 * n + 1] = (float)(ga_ * g.inv - g.qx * dot);
+            p->g_quats[4 * n + 2] = (float)(gb_ * g.inv - g.qy * dot);
+            p->g_quats[4 * n + 3] = (float)(gd * g.inv - g.qz * dot);
+            if (deg >= 0) {
+                float *o = p->g_sh + n * KS * 3;
+                for (int64_t k = 0; k < KS * 3; k++) o[k] = k < K * 3 ? (float)gsh[k] : 0.0f;
+            }
+        }
+    }
+    return NULL;
+}
+
+static void split_run(const proj_t *p, int64_t n_items, void *(*fn)(void *))
+{
+    int64_t n_threads = p->n_threads < 1 ? 1 : (p->n_threads > MAX_THREADS ? MAX_THREADS : p->n_threads);
+    if (n_threads > n_items) n_threads = n_items > 0 ? n_items : 1;
+    prange_t parts[MAX_THREADS];
+    pthread_t tid[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int64_t t = 0; t < n_threads; t++) parts[t] = (prange_t){p, n_items * t / n_threads, n_items * (t + 1) / n_threads};
+    for (int64_t t = 1; t < n_threads; t++) started[t] = pthread_create(&tid[t], NULL, fn, &parts[t]) == 0;
+    fn(&parts[0]);
+    for (int64_t t = 1; t < n_threads; t++) {
+        if (started[t]) pthread_join(tid[t], NULL);
+        else fn(&parts[t]);
+    }
+}
+
+/* project_cpu._project_forward / _project_backward (float32 inputs; see proj_t). The backward's g_vm
+   (blocks, C, 15) must be zeroed by the caller (it is added to, as the numba kernel's). */
+void ev3dgs_project_forward(const proj_t *p) { split_run(p, p->N, project_forward_range); }
+
+void ev3dgs_project_backward(const proj_t *p)
+{
+    split_run(p, (p->N + VM_BLOCK - 1) / VM_BLOCK, project_backward_range);
+}
+
 static PyMethodDef methods[] = {{NULL, NULL, 0, NULL}};
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "ev3dgs.splat._raster",
                                     "The cpu backend's SIMD tile kernels (called through ctypes: see "

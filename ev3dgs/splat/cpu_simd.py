@@ -93,6 +93,20 @@ class Job(ctypes.Structure):
                 ("n_threads", _I), ("isa", _I), ("tile_ns", _P), ("write_rows", _I)]
 
 
+_D = ctypes.c_double
+
+
+class Proj(ctypes.Structure):
+    """_raster.c's proj_t."""
+    _fields_ = [("means", _P), ("quats", _P), ("scales", _P), ("opac", _P), ("sh", _P), ("N", _I), ("C", _I),
+                ("KS", _I), ("deg", _I), ("width", _I), ("height", _I), ("vm", _P), ("campos", _P), ("cam", _P),
+                ("near", _D), ("far", _D), ("eps2d", _D), ("alpha_min", _D), ("radius_margin", _D),
+                ("means2d", _P), ("conics", _P), ("depths", _P), ("colors", _P), ("radii", _P),
+                ("g_m2d", _P), ("g_con", _P), ("g_dep", _P), ("g_col", _P),
+                ("g_means", _P), ("g_quats", _P), ("g_scales", _P), ("g_sh", _P), ("want_vm", _I), ("g_vm", _P),
+                ("n_threads", _I)]
+
+
 _lib = None
 
 
@@ -114,6 +128,9 @@ def _load():
         lib.ev3dgs_raster_pack.restype = ctypes.c_int64
         lib.ev3dgs_raster_reduce.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I]
         lib.ev3dgs_raster_reduce.restype = ctypes.c_int
+        for name in ("ev3dgs_project_forward", "ev3dgs_project_backward"):
+            getattr(lib, name).argtypes = [ctypes.POINTER(Proj)]
+            getattr(lib, name).restype = None
         _lib = lib
     return _lib
 
@@ -252,3 +269,31 @@ def backward(params, boxes, offsets, work, background, width, height, tiles_x, t
     if _load().ev3dgs_raster_backward(ctypes.byref(job)) != 0:
         raise ValueError("C rasterizer: unsupported channel count")
     _keep_tile_ns("backward", job)
+
+
+def project_active(*arrays) -> bool:
+    """Whether the projection + SH kernels run in C: the C kernels selected and built, every input float32."""
+    return KERNEL == "simd" and all(a.dtype == np.float32 for a in arrays) and available()
+
+
+def project_forward(m, q, s, o, sh, deg, vm, campos, cam, width, height, near, far, eps2d, alpha_min, radius_margin,
+                    means2d, conics, depths, colors, radii, n_threads):
+    """project_cpu._project_forward's contract, float32 inputs and outputs (bitwise its results)."""
+    p = Proj(means=_ptr(m), quats=_ptr(q), scales=_ptr(s), opac=_ptr(o), sh=_ptr(sh), N=len(m), C=len(vm),
+             KS=sh.shape[1], deg=deg, width=width, height=height, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam),
+             near=near, far=far, eps2d=eps2d, alpha_min=alpha_min, radius_margin=radius_margin,
+             means2d=_ptr(means2d), conics=_ptr(conics), depths=_ptr(depths), colors=_ptr(colors), radii=_ptr(radii),
+             n_threads=n_threads)
+    _load().ev3dgs_project_forward(ctypes.byref(p))
+
+
+def project_backward(m, q, s, o, sh, deg, vm, campos, cam, near, far, eps2d, g_m2d, g_con, g_dep, g_col,
+                     g_means, g_quats, g_scales, g_sh, want_vm, g_vm, n_threads):
+    """project_cpu._project_backward's contract, float32 inputs and gradients (rounded from its float64 ones:
+    bitwise the numba kernel's after .to(float32)); g_vm (blocks, C, 15) float64, zeroed."""
+    p = Proj(means=_ptr(m), quats=_ptr(q), scales=_ptr(s), opac=_ptr(o), sh=_ptr(sh), N=len(m), C=len(vm),
+             KS=sh.shape[1], deg=deg, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam), near=near, far=far,
+             eps2d=eps2d, g_m2d=_ptr(g_m2d), g_con=_ptr(g_con), g_dep=_ptr(g_dep), g_col=_ptr(g_col),
+             g_means=_ptr(g_means), g_quats=_ptr(g_quats), g_scales=_ptr(g_scales), g_sh=_ptr(g_sh),
+             want_vm=int(want_vm), g_vm=_ptr(g_vm), n_threads=n_threads)
+    _load().ev3dgs_project_backward(ctypes.byref(p))
