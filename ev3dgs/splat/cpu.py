@@ -30,7 +30,10 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
 
 float32 calls (the training dtype) run the same tile kernels written in C with 8-lane SIMD when the
 optional extension is built (cpu_simd.py: the same rules and schedule, exp(-sigma) from a polynomial with a
-stated error bound); float64 calls, and every call without the extension, run the numba kernels here.
+stated error bound), and the stages around them in C too: the packing from one record per (camera, Gaussian)
+(cpu_simd.records / pack, bitwise _pack, the fragment slots counted in the same pass), the backward writing
+every per-pair row (no zeroed buffer) and the per-Gaussian sum (cpu_simd.reduce, bitwise _reduce); float64
+calls, and every call without the extension, run the numba kernels here.
 
 Batched: C cameras share one call. Their tile lists are concatenated (camera c's tile t is global tile
 c * n_tiles + t), so forward and backward are one parallel loop over (camera, tile), and the per-pair

@@ -54,6 +54,13 @@ kernels deal the list round robin instead: tools/bench/schedule.py compares the 
 times). Tiles own disjoint pixels and per-pair rows, so every result is bitwise the same for any thread
 count and whichever thread ran a tile (tested).
 
+The stages around the kernels (same extension, scalar C: they move data or do float64 arithmetic in the
+numba stages' order, so their results are bitwise those of the numba stages, tested): ``records`` (one
+64-byte record per camera and Gaussian: kernel inputs and pixel box) and ``pack`` (cpu_tiles._pack from
+the records, one gather per entry, and the fragment slots per entry), the backward's ``write_rows`` (every
+per-pair row written, no zeroed buffer), ``reduce`` (cpu_backward._reduce), and ``project_forward`` /
+``project_backward`` (project_cpu's kernels, float32 inputs).
+
 Used when the extension was built and imported, the colours are float32 with at most DMAX channels and
 KERNEL is "simd" (the default; the environment variable EV3DGS_CPU_KERNEL=numba, or setting KERNEL, selects
 the numba kernels, which serve float64 and are the fallback without a C compiler).
