@@ -1,7 +1,8 @@
 """The `cpu` backend's projection + SH kernels in C (_raster.c's ev3dgs_project_forward / _backward, through
-cpu_simd), used for float32 inputs: the numba kernels' float64 operations in the same order, so every
-output and gradient is bitwise theirs (rounded to float32 at the same place), for any thread count; the
-numba kernels stay for float64, EV3DGS_CPU_KERNEL=numba and a build without the extension.
+cpu_simd), used for float32 inputs: the numba kernels' float64 operations in the same order, 4 Gaussians per
+vector (each lane the scalar operations, branches as selects), so every output and gradient is bitwise
+theirs (rounded to float32 at the same place), for any thread count and in both builds; the numba kernels
+stay for float64, EV3DGS_CPU_KERNEL=numba and a build without the extension.
 
 Against the torch path (project_gaussians + eval_sh in float64 on the same float32 values, autograd): both
 compute in float64 and only the C result is rounded to float32, so they differ by at most half an ulp of
@@ -173,3 +174,15 @@ def test_fallback_to_numba_without_the_extension(monkeypatch):
     assert not cpu_simd.project_active(np.zeros(1, np.float32))
     absent = run("simd", x, 3)
     assert all(bitwise(a, b) for a, b in zip(forced[0] + forced[1], absent[0] + absent[1]))
+
+
+@needs_c
+@pytest.mark.skipif(not cpu_simd.available() or cpu_simd.isa() != "avx2", reason="needs a CPU with AVX2")
+@pytest.mark.parametrize("deg", [None, 3])
+def test_portable_and_avx2_projection_bitwise_the_same(deg, monkeypatch):
+    """The 4-lane kernels in both builds (and the scalar code on the tails: 1003 Gaussians, 3 left over)."""
+    x = scene(9, 1003, 2, hard=True)
+    avx2 = run("simd", x, deg)
+    monkeypatch.setattr(cpu_simd, "ISA", 0)
+    portable = run("simd", x, deg)
+    assert all(bitwise(a, b) for a, b in zip(avx2[0] + avx2[1], portable[0] + portable[1]))

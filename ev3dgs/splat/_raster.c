@@ -11,7 +11,7 @@
  * library's expf), the order in which a Gaussian's per-pixel gradients are summed (8 lane accumulators) and
  * the backward's (colour behind) . G, one running sum instead of one colour behind per channel.
  */
-#ifndef RASTER_BODY
+#if !defined(RASTER_BODY) && !defined(PROJ_BODY)
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <pthread.h>
@@ -354,7 +354,10 @@ int ev3dgs_raster_reduce(const float *per_pair, const int64_t *ids, const int64_
 /* ---- projection + SH colours (float32 inputs, float64 arithmetic): project_cpu's kernels in C ---- */
 /* The numba kernels project_cpu._project_forward / _project_backward written out in C: the same float64
    operations in the same order (compiled with -ffp-contract=off: no fused multiply-adds), the same libm
-   sqrt / log / ceil, so every output is bitwise theirs (tested). Gaussians split over threads in contiguous
+   log and ceil, IEEE sqrt, so every output is bitwise theirs (tested). The scalar code below serves the
+   last few Gaussians of a range; the rest run 4 at a time in float64 lanes (the projection body at the end
+   of this file, built for AVX2 and the baseline like the tile kernels): each lane does the scalar code's
+   operations, its branches turned into selects of the value the scalar code keeps. Gaussians split over threads in contiguous
    ranges (the backward in blocks of VM_BLOCK, whose camera-gradient partial sums are per block): the result
    does not depend on the thread count. Inputs float32 (the trainer's dtype), outputs float32 (rounded from
    the float64 result, as the numba path's float32 outputs and .to(float32) conversions round). */
@@ -379,6 +382,7 @@ typedef struct {
     int64_t want_vm;
     double *g_vm;                                     /* (blocks, C, 15) */
     int64_t n_threads;
+    int64_t isa;                                      /* as job_t's */
 } proj_t;
 
 /* Python's max(a, b) / min(a, b) on floats (the first argument unless the second compares greater/less) */
@@ -607,16 +611,14 @@ static void *project_forward_range(void *arg)
     return NULL;
 }
 
-static void *project_backward_range(void *arg)
+/* Gaussians n0 ... n1 - 1 of block blk */
+static void project_backward_gaussians(const proj_t *p, int64_t blk, int64_t n0, int64_t n1)
 {
-    const prange_t *rg = arg;   /* lo, hi: blocks */
-    const proj_t *p = rg->p;
     int64_t N = p->N, C = p->C, deg = p->deg, K = (deg + 1) * (deg + 1), KS = p->KS;
     double basis[16], gb[16], u[3], v[3], gS[9], gsh[16 * 3];
-    for (int64_t blk = rg->lo; blk < rg->hi; blk++) {
+    {
         double *gvm = p->g_vm + blk * C * 15;
-        int64_t n1 = (blk + 1) * VM_BLOCK < N ? (blk + 1) * VM_BLOCK : N;
-        for (int64_t n = blk * VM_BLOCK; n < n1; n++) {
+        for (int64_t n = n0; n < n1; n++) {
             int finite = finite_row(p, n);
             if (!finite) {  /* exactly zero gradient for the whole row */
                 for (int i = 0; i < 3; i++) p->g_means[3 * n + i] = 0.0f, p->g_scales[3 * n + i] = 0.0f;
@@ -776,8 +778,28 @@ static void *project_backward_range(void *arg)
             }
         }
     }
-    return NULL;
 }
+
+/* the 4-lane forward (the projection body at the end of this file), built for AVX2 and the baseline */
+#undef RASTER_BODY
+#define PROJ_BODY 1
+#if X86
+#define SUF(name) name##_avx2
+#define HAVE_AVX 1
+#define TARGET __attribute__((target("avx2")))
+#include "_raster.c"
+#undef SUF
+#undef HAVE_AVX
+#undef TARGET
+#endif
+#define SUF(name) name##_portable
+#define HAVE_AVX 0
+#define TARGET
+#include "_raster.c"
+#undef SUF
+#undef HAVE_AVX
+#undef TARGET
+#undef PROJ_BODY
 
 static void split_run(const proj_t *p, int64_t n_items, void *(*fn)(void *))
 {
@@ -797,11 +819,27 @@ static void split_run(const proj_t *p, int64_t n_items, void *(*fn)(void *))
 
 /* project_cpu._project_forward / _project_backward (float32 inputs; see proj_t). The backward's g_vm
    (blocks, C, 15) must be zeroed by the caller (it is added to, as the numba kernel's). */
-void ev3dgs_project_forward(const proj_t *p) { split_run(p, p->N, project_forward_range); }
+void ev3dgs_project_forward(const proj_t *p)
+{
+#if X86
+    if (ev3dgs_raster_isa(p->isa)) {
+        split_run(p, p->N, project_forward_range4_avx2);
+        return;
+    }
+#endif
+    split_run(p, p->N, project_forward_range4_portable);
+}
 
 void ev3dgs_project_backward(const proj_t *p)
 {
-    split_run(p, (p->N + VM_BLOCK - 1) / VM_BLOCK, project_backward_range);
+    int64_t blocks = (p->N + VM_BLOCK - 1) / VM_BLOCK;
+#if X86
+    if (ev3dgs_raster_isa(p->isa)) {
+        split_run(p, blocks, project_backward_range4_avx2);
+        return;
+    }
+#endif
+    split_run(p, blocks, project_backward_range4_portable);
 }
 
 static PyMethodDef methods[] = {{NULL, NULL, 0, NULL}};
@@ -810,7 +848,7 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "ev3dgs.splat._raster
                                     "ev3dgs.splat.cpu_simd).", -1, methods, NULL, NULL, NULL, NULL};
 PyMODINIT_FUNC PyInit__raster(void) { return PyModule_Create(&module); }
 
-#else /* ------------------------------------------------------------------ kernel body, built twice -- */
+#elif defined(RASTER_BODY) /* ------------------------------------------- kernel body, built twice -- */
 
 static inline TARGET v8f SUF(bcast)(float x) { return (v8f){x, x, x, x, x, x, x, x}; }
 static inline TARGET v8i SUF(ibcast)(int32_t x) { return (v8i){x, x, x, x, x, x, x, x}; }
@@ -1149,6 +1187,444 @@ static TARGET void SUF(backward_tile)(const job_t *job, int64_t gt)
 {
     if (job->D == 3) SUF(backward_impl)(job, gt, 3);
     else SUF(backward_impl)(job, gt, job->D);
+}
+
+#else /* ------------------------------------------------- projection body, built twice -- */
+
+/* ---- projection + SH forward, 4 Gaussians per vector (float64 lanes): the scalar code's operations lane by
+   lane (IEEE operations are the same in a lane as in a scalar register; branches become selects of the
+   value the scalar code would keep), so bitwise its results (tested) ---- */
+typedef double v4d __attribute__((vector_size(32)));
+typedef int64_t v4l __attribute__((vector_size(32)));
+
+static inline TARGET v4d SUF(dbc)(double x) { return (v4d){x, x, x, x}; }
+static inline TARGET v4d SUF(dsel)(v4l m, v4d a, v4d b) { return (v4d)((m & (v4l)a) | (~m & (v4l)b)); }
+static inline TARGET v4d SUF(dmax)(v4d a, v4d b) { return SUF(dsel)(b > a, b, a); }  /* Python's max(a, b) */
+static inline TARGET v4d SUF(dmin)(v4d a, v4d b) { return SUF(dsel)(b < a, b, a); }
+static inline TARGET v4d SUF(dsqrt)(v4d x)
+{
+#if HAVE_AVX
+    return __builtin_ia32_sqrtpd256(x);
+#else
+    return (v4d){sqrt(x[0]), sqrt(x[1]), sqrt(x[2]), sqrt(x[3])};
+#endif
+}
+
+static TARGET void SUF(project_forward4)(const proj_t *p, int64_t n)
+{
+    int64_t N = p->N, C = p->C, deg = p->deg, K = (deg + 1) * (deg + 1), KS = p->KS;
+    v4d px, py, pz, qw, qx, qy, qz, sx, sy, sz, o, lg;
+    v4l fin;
+    for (int i = 0; i < 4; i++) {
+        int64_t g = n + i;
+        fin[i] = finite_row(p, g) ? -1 : 0;
+        px[i] = p->means[3 * g], py[i] = p->means[3 * g + 1], pz[i] = p->means[3 * g + 2];
+        qw[i] = p->quats[4 * g], qx[i] = p->quats[4 * g + 1], qy[i] = p->quats[4 * g + 2], qz[i] = p->quats[4 * g + 3];
+        sx[i] = p->scales[3 * g], sy[i] = p->scales[3 * g + 1], sz[i] = p->scales[3 * g + 2];
+        o[i] = fin[i] ? (double)p->opac[g] : 1.0;
+        lg[i] = log(255.0 * o[i]);
+    }
+    v4d zero = SUF(dbc)(0.0), one = SUF(dbc)(1.0), two = SUF(dbc)(2.0);
+    px = SUF(dsel)(fin, px, zero), py = SUF(dsel)(fin, py, zero), pz = SUF(dsel)(fin, pz, zero);
+    qw = SUF(dsel)(fin, qw, one), qx = SUF(dsel)(fin, qx, one), qy = SUF(dsel)(fin, qy, one);
+    qz = SUF(dsel)(fin, qz, one);
+    sx = SUF(dsel)(fin, sx, one), sy = SUF(dsel)(fin, sy, one), sz = SUF(dsel)(fin, sz, one);
+    v4d sq = qw * qw + qx * qx + qy * qy + qz * qz;
+    v4d inv = one / SUF(dsqrt)(SUF(dmax)(sq, SUF(dbc)(1e-24)));
+    v4d w_ = qw * inv, x_ = qx * inv, y_ = qy * inv, z_ = qz * inv;
+    v4d r[9] = {one - two * (y_ * y_ + z_ * z_), two * (x_ * y_ - w_ * z_), two * (x_ * z_ + w_ * y_),
+                two * (x_ * y_ + w_ * z_), one - two * (x_ * x_ + z_ * z_), two * (y_ * z_ - w_ * x_),
+                two * (x_ * z_ - w_ * y_), two * (y_ * z_ + w_ * x_), one - two * (x_ * x_ + y_ * y_)};
+    v4d m[9] = {r[0] * sx, r[1] * sy, r[2] * sz, r[3] * sx, r[4] * sy, r[5] * sz, r[6] * sx, r[7] * sy, r[8] * sz};
+    v4d s00 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+    v4d s01 = m[0] * m[3] + m[1] * m[4] + m[2] * m[5];
+    v4d s02 = m[0] * m[6] + m[1] * m[7] + m[2] * m[8];
+    v4d s11 = m[3] * m[3] + m[4] * m[4] + m[5] * m[5];
+    v4d s12 = m[3] * m[6] + m[4] * m[7] + m[5] * m[8];
+    v4d s22 = m[6] * m[6] + m[7] * m[7] + m[8] * m[8];
+    v4d S[9] = {s00, s01, s02, s01, s11, s12, s02, s12, s22};
+    v4d extent = SUF(dsqrt)(two * SUF(dmax)(lg, zero));
+    v4l bright = ~(o < SUF(dbc)(p->alpha_min));
+    for (int64_t c = 0; c < C; c++) {
+        const double *v = p->vm + 16 * c, *cam = p->cam + 8 * c;
+        double fx = cam[0], fy = cam[1];
+        v4d x = SUF(dbc)(v[0]) * px + SUF(dbc)(v[1]) * py + SUF(dbc)(v[2]) * pz + SUF(dbc)(v[3]);
+        v4d y = SUF(dbc)(v[4]) * px + SUF(dbc)(v[5]) * py + SUF(dbc)(v[6]) * pz + SUF(dbc)(v[7]);
+        v4d zr = SUF(dbc)(v[8]) * px + SUF(dbc)(v[9]) * py + SUF(dbc)(v[10]) * pz + SUF(dbc)(v[11]);
+        v4l valid = (zr > SUF(dbc)(p->near_)) & (zr < SUF(dbc)(p->far_)) & fin;
+        v4d z = SUF(dsel)(valid, zr, one);
+        v4d xz = x / z, yz = y / z;
+        v4d cxz = SUF(dmin)(SUF(dmax)(xz, SUF(dbc)(-cam[4])), SUF(dbc)(cam[5]));
+        v4d cyz = SUF(dmin)(SUF(dmax)(yz, SUF(dbc)(-cam[6])), SUF(dbc)(cam[7]));
+        v4d tx = z * cxz, ty = z * cyz;
+        v4d rz = one / z;
+        v4d vfx = SUF(dbc)(fx), vfy = SUF(dbc)(fy);
+        v4d j00 = vfx * rz, j02 = -vfx * tx * rz * rz, j11 = vfy * rz, j12 = -vfy * ty * rz * rz;
+        v4d t0[3] = {j00 * SUF(dbc)(v[0]) + j02 * SUF(dbc)(v[8]), j00 * SUF(dbc)(v[1]) + j02 * SUF(dbc)(v[9]),
+                     j00 * SUF(dbc)(v[2]) + j02 * SUF(dbc)(v[10])};
+        v4d t1[3] = {j11 * SUF(dbc)(v[4]) + j12 * SUF(dbc)(v[8]), j11 * SUF(dbc)(v[5]) + j12 * SUF(dbc)(v[9]),
+                     j11 * SUF(dbc)(v[6]) + j12 * SUF(dbc)(v[10])};
+        v4d u0 = S[0] * t0[0] + S[1] * t0[1] + S[2] * t0[2];
+        v4d u1 = S[3] * t0[0] + S[4] * t0[1] + S[5] * t0[2];
+        v4d u2 = S[6] * t0[0] + S[7] * t0[1] + S[8] * t0[2];
+        v4d v0 = S[0] * t1[0] + S[1] * t1[1] + S[2] * t1[2];
+        v4d v1 = S[3] * t1[0] + S[4] * t1[1] + S[5] * t1[2];
+        v4d v2 = S[6] * t1[0] + S[7] * t1[1] + S[8] * t1[2];
+        v4d eps = SUF(dbc)(p->eps2d);
+        v4d c11 = t0[0] * u0 + t0[1] * u1 + t0[2] * u2 + eps;
+        v4d c12 = t0[0] * v0 + t0[1] * v1 + t0[2] * v2;
+        v4d c22 = t1[0] * v0 + t1[1] * v1 + t1[2] * v2 + eps;
+        v4d det = SUF(dmax)(c11 * c22 - c12 * c12, SUF(dbc)(1e-12));
+        v4d ca = c22 / det, cb = -c12 / det, cc = c11 / det;
+        v4d mx = vfx * xz + SUF(dbc)(cam[2]), my = vfy * yz + SUF(dbc)(cam[3]);
+        v4d mid = SUF(dbc)(0.5) * (c11 + c22);
+        v4d lam = mid + SUF(dsqrt)(SUF(dmax)(mid * mid - (c11 * c22 - c12 * c12), SUF(dbc)(0.1)));
+        v4d rr = extent * SUF(dsqrt)(SUF(dmax)(lam, zero)) * SUF(dbc)(1.0 + p->radius_margin);
+        v4d colv[3];
+        if (deg >= 0) {
+            const double *cpos = p->campos + 3 * c;
+            v4d dx = px - SUF(dbc)(cpos[0]), dy = py - SUF(dbc)(cpos[1]), dz = pz - SUF(dbc)(cpos[2]);
+            v4d d2 = SUF(dmax)(dx * dx + dy * dy + dz * dz, SUF(dbc)(1e-24));
+            v4d di = one / SUF(dsqrt)(d2);
+            v4d ux = dx * di, uy = dy * di, uz = dz * di;
+            v4d basis[16];
+            basis[0] = SUF(dbc)(SH_C0);
+            if (deg >= 1) {
+                basis[1] = SUF(dbc)(-SH_C1) * uy;
+                basis[2] = SUF(dbc)(SH_C1) * uz;
+                basis[3] = SUF(dbc)(-SH_C1) * ux;
+            }
+            if (deg >= 2) {
+                v4d xx = ux * ux, yy = uy * uy, zz = uz * uz, xy = ux * uy, yz2 = uy * uz, xz2 = ux * uz;
+                v4d three = SUF(dbc)(3.0), four = SUF(dbc)(4.0);
+                basis[4] = SUF(dbc)(SH_C2[0]) * xy;
+                basis[5] = SUF(dbc)(SH_C2[1]) * yz2;
+                basis[6] = SUF(dbc)(SH_C2[2]) * (two * zz - xx - yy);
+                basis[7] = SUF(dbc)(SH_C2[3]) * xz2;
+                basis[8] = SUF(dbc)(SH_C2[4]) * (xx - yy);
+                if (deg >= 3) {
+                    basis[9] = SUF(dbc)(SH_C3[0]) * uy * (three * xx - yy);
+                    basis[10] = SUF(dbc)(SH_C3[1]) * xy * uz;
+                    basis[11] = SUF(dbc)(SH_C3[2]) * uy * (four * zz - xx - yy);
+                    basis[12] = SUF(dbc)(SH_C3[3]) * uz * (two * zz - three * xx - three * yy);
+                    basis[13] = SUF(dbc)(SH_C3[4]) * ux * (four * zz - xx - yy);
+                    basis[14] = SUF(dbc)(SH_C3[5]) * uz * (xx - yy);
+                    basis[15] = SUF(dbc)(SH_C3[6]) * ux * (xx - three * yy);
+                }
+            }
+            for (int ch = 0; ch < 3; ch++) {
+                v4d acc = zero;
+                for (int64_t k = 0; k < K; k++) {
+                    v4d shv;
+                    for (int i = 0; i < 4; i++) shv[i] = p->sh[((n + i) * KS + k) * 3 + ch];
+                    acc += basis[k] * shv;
+                }
+                colv[ch] = SUF(dmax)(acc + SUF(dbc)(0.5), zero);
+            }
+        }
+        for (int i = 0; i < 4; i++) {
+            int64_t cn = c * N + n + i;
+            p->conics[3 * cn] = (float)ca[i];
+            p->conics[3 * cn + 1] = (float)cb[i];
+            p->conics[3 * cn + 2] = (float)cc[i];
+            p->means2d[2 * cn] = (float)mx[i];
+            p->means2d[2 * cn + 1] = (float)my[i];
+            p->depths[cn] = (float)zr[i];
+            double rad = 0.0;
+            if (valid[i] && fin[i] && bright[i]) {
+                rad = ceil_as_int(rr[i]);
+                if (!finite_d(rad)) rad = 0.0;
+                else if (rad < 1.0) rad = 1.0;
+                if (mx[i] + rad < -0.5 || mx[i] - rad > p->width - 0.5 || my[i] + rad < -0.5
+                    || my[i] - rad > p->height - 0.5 || !finite_d(mx[i]) || !finite_d(my[i]))
+                    rad = 0.0;
+            }
+            p->radii[cn] = (int32_t)(int64_t)pmin(rad, 1073741824.0);
+            if (deg >= 0)
+                for (int ch = 0; ch < 3; ch++) p->colors[3 * cn + ch] = (float)colv[ch][i];
+        }
+    }
+}
+
+static TARGET void *SUF(project_forward_range4)(void *arg)
+{
+    const prange_t *rg = arg;
+    int64_t n = rg->lo;
+    for (; n + 4 <= rg->hi; n += 4) SUF(project_forward4)(rg->p, n);
+    if (n < rg->hi) {
+        prange_t rest = {rg->p, n, rg->hi};
+        project_forward_range(&rest);
+    }
+    return NULL;
+}
+
+
+/* the backward for 4 Gaussians n ... n + 3 of one block (blocks hold a multiple of 4), lane by lane the scalar
+   backward's operations; a non-finite lane gets zero gradients and adds nothing to the camera sums, whose
+   additions stay in Gaussian order (lane 0, 1, 2, 3 in turn) */
+static TARGET void SUF(project_backward4)(const proj_t *p, int64_t n, double *gvm)
+{
+    int64_t N = p->N, C = p->C, deg = p->deg, K = (deg + 1) * (deg + 1), KS = p->KS;
+    v4d px, py, pz, qw, qx, qy, qz, sx, sy, sz;
+    v4l fin;
+    for (int i = 0; i < 4; i++) {
+        int64_t g = n + i;
+        fin[i] = finite_row(p, g) ? -1 : 0;
+        px[i] = p->means[3 * g], py[i] = p->means[3 * g + 1], pz[i] = p->means[3 * g + 2];
+        qw[i] = p->quats[4 * g], qx[i] = p->quats[4 * g + 1], qy[i] = p->quats[4 * g + 2], qz[i] = p->quats[4 * g + 3];
+        sx[i] = p->scales[3 * g], sy[i] = p->scales[3 * g + 1], sz[i] = p->scales[3 * g + 2];
+    }
+    v4d zero = SUF(dbc)(0.0), one = SUF(dbc)(1.0), two = SUF(dbc)(2.0), half = SUF(dbc)(0.5);
+    px = SUF(dsel)(fin, px, zero), py = SUF(dsel)(fin, py, zero), pz = SUF(dsel)(fin, pz, zero);
+    qw = SUF(dsel)(fin, qw, one), qx = SUF(dsel)(fin, qx, one), qy = SUF(dsel)(fin, qy, one);
+    qz = SUF(dsel)(fin, qz, one);
+    sx = SUF(dsel)(fin, sx, one), sy = SUF(dsel)(fin, sy, one), sz = SUF(dsel)(fin, sz, one);
+    v4d sq = qw * qw + qx * qx + qy * qy + qz * qz;
+    v4d inv = one / SUF(dsqrt)(SUF(dmax)(sq, SUF(dbc)(1e-24)));
+    v4d w_ = qw * inv, x_ = qx * inv, y_ = qy * inv, z_ = qz * inv;
+    v4d r[9] = {one - two * (y_ * y_ + z_ * z_), two * (x_ * y_ - w_ * z_), two * (x_ * z_ + w_ * y_),
+                two * (x_ * y_ + w_ * z_), one - two * (x_ * x_ + z_ * z_), two * (y_ * z_ - w_ * x_),
+                two * (x_ * z_ - w_ * y_), two * (y_ * z_ + w_ * x_), one - two * (x_ * x_ + y_ * y_)};
+    v4d m[9] = {r[0] * sx, r[1] * sy, r[2] * sz, r[3] * sx, r[4] * sy, r[5] * sz, r[6] * sx, r[7] * sy, r[8] * sz};
+    v4d s00 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+    v4d s01 = m[0] * m[3] + m[1] * m[4] + m[2] * m[5];
+    v4d s02 = m[0] * m[6] + m[1] * m[7] + m[2] * m[8];
+    v4d s11 = m[3] * m[3] + m[4] * m[4] + m[5] * m[5];
+    v4d s12 = m[3] * m[6] + m[4] * m[7] + m[5] * m[8];
+    v4d s22 = m[6] * m[6] + m[7] * m[7] + m[8] * m[8];
+    v4d S[9] = {s00, s01, s02, s01, s11, s12, s02, s12, s22};
+    v4d gpx = zero, gpy = zero, gpz = zero, gS[9], gsh[48];
+    for (int i = 0; i < 9; i++) gS[i] = zero;
+    for (int i = 0; i < 48; i++) gsh[i] = zero;
+    for (int64_t c = 0; c < C; c++) {
+        const double *vm = p->vm + 16 * c, *cam = p->cam + 8 * c;
+        v4d V[12];
+        for (int i = 0; i < 12; i++) V[i] = SUF(dbc)(vm[i]);
+        v4d vfx = SUF(dbc)(cam[0]), vfy = SUF(dbc)(cam[1]);
+        v4d x = V[0] * px + V[1] * py + V[2] * pz + V[3];
+        v4d y = V[4] * px + V[5] * py + V[6] * pz + V[7];
+        v4d zr = V[8] * px + V[9] * py + V[10] * pz + V[11];
+        v4l valid = (zr > SUF(dbc)(p->near_)) & (zr < SUF(dbc)(p->far_)) & fin;
+        v4d z = SUF(dsel)(valid, zr, one);
+        v4d xz = x / z, yz = y / z;
+        v4d cxz = SUF(dmin)(SUF(dmax)(xz, SUF(dbc)(-cam[4])), SUF(dbc)(cam[5]));
+        v4d cyz = SUF(dmin)(SUF(dmax)(yz, SUF(dbc)(-cam[6])), SUF(dbc)(cam[7]));
+        v4d tx = z * cxz, ty = z * cyz;
+        v4d rz = one / z;
+        v4d j00 = vfx * rz, j02 = -vfx * tx * rz * rz, j11 = vfy * rz, j12 = -vfy * ty * rz * rz;
+        v4d t0[3] = {j00 * V[0] + j02 * V[8], j00 * V[1] + j02 * V[9], j00 * V[2] + j02 * V[10]};
+        v4d t1[3] = {j11 * V[4] + j12 * V[8], j11 * V[5] + j12 * V[9], j11 * V[6] + j12 * V[10]};
+        v4d u0 = S[0] * t0[0] + S[1] * t0[1] + S[2] * t0[2];
+        v4d u1 = S[3] * t0[0] + S[4] * t0[1] + S[5] * t0[2];
+        v4d u2 = S[6] * t0[0] + S[7] * t0[1] + S[8] * t0[2];
+        v4d v0 = S[0] * t1[0] + S[1] * t1[1] + S[2] * t1[2];
+        v4d v1 = S[3] * t1[0] + S[4] * t1[1] + S[5] * t1[2];
+        v4d v2 = S[6] * t1[0] + S[7] * t1[1] + S[8] * t1[2];
+        v4d eps = SUF(dbc)(p->eps2d);
+        v4d c11 = t0[0] * u0 + t0[1] * u1 + t0[2] * u2 + eps;
+        v4d c12 = t0[0] * v0 + t0[1] * v1 + t0[2] * v2;
+        v4d c22 = t1[0] * v0 + t1[1] * v1 + t1[2] * v2 + eps;
+        v4d det_raw = c11 * c22 - c12 * c12;
+        v4d det = SUF(dmax)(det_raw, SUF(dbc)(1e-12));
+        v4d ga, gbb, gc, gm0, gm1, gdep;
+        for (int i = 0; i < 4; i++) {
+            int64_t cn = c * N + n + i;
+            ga[i] = p->g_con[3 * cn], gbb[i] = p->g_con[3 * cn + 1], gc[i] = p->g_con[3 * cn + 2];
+            gm0[i] = p->g_m2d[2 * cn], gm1[i] = p->g_m2d[2 * cn + 1], gdep[i] = p->g_dep[cn];
+        }
+        v4d g11 = gc / det, g12 = -gbb / det, g22 = ga / det;
+        {
+            v4l big = det_raw >= SUF(dbc)(1e-12);
+            v4d gdet = -(ga * c22 - gbb * c12 + gc * c11) / (det * det);
+            g11 = SUF(dsel)(big, g11 + gdet * c22, g11);
+            g22 = SUF(dsel)(big, g22 + gdet * c11, g22);
+            g12 = SUF(dsel)(big, g12 - two * gdet * c12, g12);
+        }
+        v4d h = half * g12;
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++)
+                gS[i * 3 + j] += (g11 * t0[i] * t0[j] + h * (t0[i] * t1[j] + t1[i] * t0[j]) + g22 * t1[i] * t1[j]);
+        v4d u[3], v[3];
+        for (int i = 0; i < 3; i++) {
+            u[i] = S[i * 3] * t0[0] + S[i * 3 + 1] * t0[1] + S[i * 3 + 2] * t0[2];
+            v[i] = S[i * 3] * t1[0] + S[i * 3 + 1] * t1[1] + S[i * 3 + 2] * t1[2];
+        }
+        v4d gT0[3] = {two * (g11 * u[0] + h * v[0]), two * (g11 * u[1] + h * v[1]), two * (g11 * u[2] + h * v[2])};
+        v4d gT1[3] = {two * (h * u[0] + g22 * v[0]), two * (h * u[1] + g22 * v[1]), two * (h * u[2] + g22 * v[2])};
+        v4d gj00 = gT0[0] * V[0] + gT0[1] * V[1] + gT0[2] * V[2];
+        v4d gj02 = gT0[0] * V[8] + gT0[1] * V[9] + gT0[2] * V[10];
+        v4d gj11 = gT1[0] * V[4] + gT1[1] * V[5] + gT1[2] * V[6];
+        v4d gj12 = gT1[0] * V[8] + gT1[1] * V[9] + gT1[2] * V[10];
+        v4d grz = vfx * gj00 + vfy * gj11 - two * vfx * tx * rz * gj02 - two * vfy * ty * rz * gj12;
+        v4d gtx = -vfx * rz * rz * gj02;
+        v4d gty = -vfy * rz * rz * gj12;
+        v4d gz = -grz * rz * rz + gtx * cxz + gty * cyz;
+        v4d gxz = vfx * gm0, gyz = vfy * gm1;
+        gxz = SUF(dsel)((xz > SUF(dbc)(-cam[4])) & (xz < SUF(dbc)(cam[5])), gxz + gtx * z, gxz);
+        gyz = SUF(dsel)((yz > SUF(dbc)(-cam[6])) & (yz < SUF(dbc)(cam[7])), gyz + gty * z, gyz);
+        v4d gx = gxz / z, gy = gyz / z;
+        gz -= (gxz * x + gyz * y) / (z * z);
+        v4d gzr = gdep + SUF(dsel)(valid, gz, zero);
+        gpx += V[0] * gx + V[4] * gy + V[8] * gzr;
+        gpy += V[1] * gx + V[5] * gy + V[9] * gzr;
+        gpz += V[2] * gx + V[6] * gy + V[10] * gzr;
+        v4d cvm[15];
+        if (p->want_vm) {
+            v4d pj[3] = {px, py, pz};
+            for (int j = 0; j < 3; j++) {
+                cvm[j] = gx * pj[j] + j00 * gT0[j];
+                cvm[4 + j] = gy * pj[j] + j11 * gT1[j];
+                cvm[8 + j] = gzr * pj[j] + j02 * gT0[j] + j12 * gT1[j];
+            }
+            cvm[3] = gx, cvm[7] = gy, cvm[11] = gzr;
+        }
+        if (deg >= 0) {
+            const double *cpos = p->campos + 3 * c;
+            v4d dx = px - SUF(dbc)(cpos[0]), dy = py - SUF(dbc)(cpos[1]), dz = pz - SUF(dbc)(cpos[2]);
+            v4d d2r = dx * dx + dy * dy + dz * dz;
+            v4d d2 = SUF(dmax)(d2r, SUF(dbc)(1e-24));
+            v4d di = one / SUF(dsqrt)(d2);
+            v4d ux = dx * di, uy = dy * di, uz = dz * di;
+            v4d basis[16], gb[16];
+            v4d three = SUF(dbc)(3.0), four = SUF(dbc)(4.0), six = SUF(dbc)(6.0), eight = SUF(dbc)(8.0);
+            basis[0] = SUF(dbc)(SH_C0);
+            v4d xx = ux * ux, yy = uy * uy, zz = uz * uz;
+            if (deg >= 1) {
+                basis[1] = SUF(dbc)(-SH_C1) * uy;
+                basis[2] = SUF(dbc)(SH_C1) * uz;
+                basis[3] = SUF(dbc)(-SH_C1) * ux;
+            }
+            if (deg >= 2) {
+                v4d xy = ux * uy, yz2 = uy * uz, xz2 = ux * uz;
+                basis[4] = SUF(dbc)(SH_C2[0]) * xy;
+                basis[5] = SUF(dbc)(SH_C2[1]) * yz2;
+                basis[6] = SUF(dbc)(SH_C2[2]) * (two * zz - xx - yy);
+                basis[7] = SUF(dbc)(SH_C2[3]) * xz2;
+                basis[8] = SUF(dbc)(SH_C2[4]) * (xx - yy);
+                if (deg >= 3) {
+                    basis[9] = SUF(dbc)(SH_C3[0]) * uy * (three * xx - yy);
+                    basis[10] = SUF(dbc)(SH_C3[1]) * xy * uz;
+                    basis[11] = SUF(dbc)(SH_C3[2]) * uy * (four * zz - xx - yy);
+                    basis[12] = SUF(dbc)(SH_C3[3]) * uz * (two * zz - three * xx - three * yy);
+                    basis[13] = SUF(dbc)(SH_C3[4]) * ux * (four * zz - xx - yy);
+                    basis[14] = SUF(dbc)(SH_C3[5]) * uz * (xx - yy);
+                    basis[15] = SUF(dbc)(SH_C3[6]) * ux * (xx - three * yy);
+                }
+            }
+            for (int64_t k = 0; k < K; k++) gb[k] = zero;
+            for (int ch = 0; ch < 3; ch++) {
+                v4d shv[16], gcol;
+                v4d acc = zero;
+                for (int64_t k = 0; k < K; k++) {
+                    for (int i = 0; i < 4; i++) shv[k][i] = p->sh[((n + i) * KS + k) * 3 + ch];
+                    acc += basis[k] * shv[k];
+                }
+                for (int i = 0; i < 4; i++) gcol[i] = p->g_col[3 * (c * N + n + i) + ch];
+                v4l on = acc + half >= zero;
+                for (int64_t k = 0; k < K; k++) {
+                    gsh[k * 3 + ch] = SUF(dsel)(on, gsh[k * 3 + ch] + basis[k] * gcol, gsh[k * 3 + ch]);
+                    gb[k] = SUF(dsel)(on, gb[k] + shv[k] * gcol, gb[k]);
+                }
+            }
+            v4d gux = zero, guy = zero, guz = zero, g;
+            if (deg >= 1) {
+                guy -= SUF(dbc)(SH_C1) * gb[1];
+                guz += SUF(dbc)(SH_C1) * gb[2];
+                gux -= SUF(dbc)(SH_C1) * gb[3];
+            }
+            if (deg >= 2) {
+                g = SUF(dbc)(SH_C2[0]) * gb[4]; gux += g * uy; guy += g * ux;
+                g = SUF(dbc)(SH_C2[1]) * gb[5]; guy += g * uz; guz += g * uy;
+                g = SUF(dbc)(SH_C2[2]) * gb[6]; gux -= two * g * ux; guy -= two * g * uy; guz += four * g * uz;
+                g = SUF(dbc)(SH_C2[3]) * gb[7]; gux += g * uz; guz += g * ux;
+                g = SUF(dbc)(SH_C2[4]) * gb[8]; gux += two * g * ux; guy -= two * g * uy;
+                if (deg >= 3) {
+                    g = SUF(dbc)(SH_C3[0]) * gb[9]; gux += g * six * ux * uy; guy += g * (three * xx - three * yy);
+                    g = SUF(dbc)(SH_C3[1]) * gb[10]; gux += g * uy * uz; guy += g * ux * uz; guz += g * ux * uy;
+                    g = SUF(dbc)(SH_C3[2]) * gb[11]; gux -= g * two * ux * uy;
+                    guy += g * (four * zz - xx - three * yy); guz += g * eight * uy * uz;
+                    g = SUF(dbc)(SH_C3[3]) * gb[12]; gux -= g * six * ux * uz; guy -= g * six * uy * uz;
+                    guz += g * (six * zz - three * xx - three * yy);
+                    g = SUF(dbc)(SH_C3[4]) * gb[13]; gux += g * (four * zz - three * xx - yy);
+                    guy -= g * two * ux * uy; guz += g * eight * ux * uz;
+                    g = SUF(dbc)(SH_C3[5]) * gb[14]; gux += g * two * ux * uz; guy -= g * two * uy * uz;
+                    guz += g * (xx - yy);
+                    g = SUF(dbc)(SH_C3[6]) * gb[15]; gux += g * (three * xx - three * yy); guy -= g * six * ux * uy;
+                }
+            }
+            v4d gdx = gux * di, gdy = guy * di, gdz = guz * di;
+            {
+                v4l ok = d2r >= SUF(dbc)(1e-24);
+                v4d dot = (gux * dx + guy * dy + guz * dz) * di * di * di;
+                gdx = SUF(dsel)(ok, gdx - dx * dot, gdx);
+                gdy = SUF(dsel)(ok, gdy - dy * dot, gdy);
+                gdz = SUF(dsel)(ok, gdz - dz * dot, gdz);
+            }
+            gpx += gdx;
+            gpy += gdy;
+            gpz += gdz;
+            if (p->want_vm) cvm[12] = gdx, cvm[13] = gdy, cvm[14] = gdz;
+        }
+        if (p->want_vm) {
+            double *gv = gvm + c * 15;
+            for (int i = 0; i < 4; i++) {
+                if (!fin[i]) continue;
+                for (int j = 0; j < 12; j++) gv[j] += cvm[j][i];
+                if (deg >= 0)
+                    for (int j = 12; j < 15; j++) gv[j] -= cvm[j][i];
+            }
+        }
+    }
+    v4d gM[9];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            v4d acc = zero;
+            for (int k = 0; k < 3; k++) acc += (gS[i * 3 + k] + gS[k * 3 + i]) * m[k * 3 + j];
+            gM[i * 3 + j] = acc;
+        }
+    v4d gsx = gM[0] * r[0] + gM[3] * r[3] + gM[6] * r[6];
+    v4d gsy = gM[1] * r[1] + gM[4] * r[4] + gM[7] * r[7];
+    v4d gsz = gM[2] * r[2] + gM[5] * r[5] + gM[8] * r[8];
+    v4d G[9];
+    for (int i = 0; i < 3; i++) {
+        G[i * 3] = gM[i * 3] * sx;
+        G[i * 3 + 1] = gM[i * 3 + 1] * sy;
+        G[i * 3 + 2] = gM[i * 3 + 2] * sz;
+    }
+    v4d w = w_, a = x_, b = y_, d = z_;
+    v4d gw = two * (-G[1] * d + G[2] * b + G[3] * d - G[5] * a - G[6] * b + G[7] * a);
+    v4d ga_ = two * (G[1] * b + G[2] * d + G[3] * b - two * G[4] * a - G[5] * w + G[6] * d + G[7] * w - two * G[8] * a);
+    v4d gb_ = two * (-two * G[0] * b + G[1] * a + G[2] * w + G[3] * a + G[5] * d - G[6] * w + G[7] * d - two * G[8] * b);
+    v4d gd = two * (-two * G[0] * d - G[1] * w + G[2] * a + G[3] * w - two * G[4] * d + G[5] * b + G[6] * a + G[7] * b);
+    v4d dot = SUF(dsel)(sq >= SUF(dbc)(1e-24), (gw * qw + ga_ * qx + gb_ * qy + gd * qz) * inv * inv * inv, zero);
+    v4d oq[4] = {gw * inv - qw * dot, ga_ * inv - qx * dot, gb_ * inv - qy * dot, gd * inv - qz * dot};
+    for (int i = 0; i < 4; i++) {
+        int64_t g = n + i;
+        int f = fin[i] != 0;
+        p->g_means[3 * g] = f ? (float)gpx[i] : 0.0f;
+        p->g_means[3 * g + 1] = f ? (float)gpy[i] : 0.0f;
+        p->g_means[3 * g + 2] = f ? (float)gpz[i] : 0.0f;
+        p->g_scales[3 * g] = f ? (float)gsx[i] : 0.0f;
+        p->g_scales[3 * g + 1] = f ? (float)gsy[i] : 0.0f;
+        p->g_scales[3 * g + 2] = f ? (float)gsz[i] : 0.0f;
+        for (int j = 0; j < 4; j++) p->g_quats[4 * g + j] = f ? (float)oq[j][i] : 0.0f;
+        if (deg >= 0) {
+            float *o = p->g_sh + g * KS * 3;
+            for (int64_t k = 0; k < KS * 3; k++) o[k] = f && k < K * 3 ? (float)gsh[k][i] : 0.0f;
+        }
+    }
+}
+
+static TARGET void *SUF(project_backward_range4)(void *arg)
+{
+    const prange_t *rg = arg;   /* blocks */
+    const proj_t *p = rg->p;
+    for (int64_t blk = rg->lo; blk < rg->hi; blk++) {
+        int64_t n = blk * VM_BLOCK, n1 = (blk + 1) * VM_BLOCK < p->N ? (blk + 1) * VM_BLOCK : p->N;
+        for (; n + 4 <= n1; n += 4) SUF(project_backward4)(p, n, p->g_vm + blk * p->C * 15);
+        if (n < n1) project_backward_gaussians(p, blk, n, n1);  /* the last block's tail, scalar */
+    }
+    return NULL;
 }
 
 #endif

@@ -59,7 +59,7 @@ numba stages' order, so their results are bitwise those of the numba stages, tes
 64-byte record per camera and Gaussian: kernel inputs and pixel box) and ``pack`` (cpu_tiles._pack from
 the records, one gather per entry, and the fragment slots per entry), the backward's ``write_rows`` (every
 per-pair row written, no zeroed buffer), ``reduce`` (cpu_backward._reduce), and ``project_forward`` /
-``project_backward`` (project_cpu's kernels, float32 inputs).
+``project_backward`` (project_cpu's kernels, float32 inputs, 4 Gaussians per vector of float64 lanes).
 
 Used when the extension was built and imported, the colours are float32 with at most DMAX channels and
 KERNEL is "simd" (the default; the environment variable EV3DGS_CPU_KERNEL=numba, or setting KERNEL, selects
@@ -111,7 +111,7 @@ class Proj(ctypes.Structure):
                 ("means2d", _P), ("conics", _P), ("depths", _P), ("colors", _P), ("radii", _P),
                 ("g_m2d", _P), ("g_con", _P), ("g_dep", _P), ("g_col", _P),
                 ("g_means", _P), ("g_quats", _P), ("g_scales", _P), ("g_sh", _P), ("want_vm", _I), ("g_vm", _P),
-                ("n_threads", _I)]
+                ("n_threads", _I), ("isa", _I)]
 
 
 _lib = None
@@ -290,7 +290,7 @@ def project_forward(m, q, s, o, sh, deg, vm, campos, cam, width, height, near, f
              KS=sh.shape[1], deg=deg, width=width, height=height, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam),
              near=near, far=far, eps2d=eps2d, alpha_min=alpha_min, radius_margin=radius_margin,
              means2d=_ptr(means2d), conics=_ptr(conics), depths=_ptr(depths), colors=_ptr(colors), radii=_ptr(radii),
-             n_threads=n_threads)
+             n_threads=n_threads, isa=ISA)
     _load().ev3dgs_project_forward(ctypes.byref(p))
 
 
@@ -302,5 +302,5 @@ def project_backward(m, q, s, o, sh, deg, vm, campos, cam, near, far, eps2d, g_m
              KS=sh.shape[1], deg=deg, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam), near=near, far=far,
              eps2d=eps2d, g_m2d=_ptr(g_m2d), g_con=_ptr(g_con), g_dep=_ptr(g_dep), g_col=_ptr(g_col),
              g_means=_ptr(g_means), g_quats=_ptr(g_quats), g_scales=_ptr(g_scales), g_sh=_ptr(g_sh),
-             want_vm=int(want_vm), g_vm=_ptr(g_vm), n_threads=n_threads)
+             want_vm=int(want_vm), g_vm=_ptr(g_vm), n_threads=n_threads, isa=ISA)
     _load().ev3dgs_project_backward(ctypes.byref(p))
