@@ -352,15 +352,15 @@ int ev3dgs_raster_reduce(const float *per_pair, const int64_t *ids, const int64_
 }
 
 /* ---- projection + SH colours (float32 inputs, float64 arithmetic): project_cpu's kernels in C ---- */
-/* The numba kernels project_cpu._project_forward / _project_backward written out in C: the same float64
-   operations in the same order (compiled with -ffp-contract=off: no fused multiply-adds), the same libm
-   log and ceil, IEEE sqrt, so every output is bitwise theirs (tested). The scalar code below serves the
-   last few Gaussians of a range; the rest run 4 at a time in float64 lanes (the projection body at the end
-   of this file, built for AVX2 and the baseline like the tile kernels): each lane does the scalar code's
-   operations, its branches turned into selects of the value the scalar code keeps. Gaussians split over threads in contiguous
-   ranges (the backward in blocks of VM_BLOCK, whose camera-gradient partial sums are per block): the result
-   does not depend on the thread count. Inputs float32 (the trainer's dtype), outputs float32 (rounded from
-   the float64 result, as the numba path's float32 outputs and .to(float32) conversions round). */
+/* The numba kernels project_cpu._project_forward / _project_backward written out in C: the same float64 operations
+   in the same order (compiled with -ffp-contract=off: no fused multiply-adds), the same libm log and ceil, IEEE
+   sqrt, so every output is bitwise theirs (tested). The scalar code below serves the last few Gaussians of a
+   range; the rest run 4 at a time in float64 lanes (the projection body at the end of this file, built for AVX2
+   and the baseline like the tile kernels): each lane does the scalar code's operations, its branches turned into
+   selects of the value the scalar code keeps. Gaussians split over threads in contiguous ranges (the backward in
+   blocks of VM_BLOCK, whose camera-gradient partial sums are per block): the result does not depend on the thread
+   count. Inputs float32 (the trainer's dtype), outputs float32 (rounded from the float64 result, as the numba
+   path's float32 outputs and .to(float32) conversions round). */
 #include <math.h>
 
 #define VM_BLOCK 256
@@ -808,7 +808,8 @@ static void split_run(const proj_t *p, int64_t n_items, void *(*fn)(void *))
     prange_t parts[MAX_THREADS];
     pthread_t tid[MAX_THREADS];
     int started[MAX_THREADS] = {0};
-    for (int64_t t = 0; t < n_threads; t++) parts[t] = (prange_t){p, n_items * t / n_threads, n_items * (t + 1) / n_threads};
+    for (int64_t t = 0; t < n_threads; t++)
+        parts[t] = (prange_t){p, n_items * t / n_threads, n_items * (t + 1) / n_threads};
     for (int64_t t = 1; t < n_threads; t++) started[t] = pthread_create(&tid[t], NULL, fn, &parts[t]) == 0;
     fn(&parts[0]);
     for (int64_t t = 1; t < n_threads; t++) {
@@ -1593,9 +1594,12 @@ static TARGET void SUF(project_backward4)(const proj_t *p, int64_t n, double *gv
     }
     v4d w = w_, a = x_, b = y_, d = z_;
     v4d gw = two * (-G[1] * d + G[2] * b + G[3] * d - G[5] * a - G[6] * b + G[7] * a);
-    v4d ga_ = two * (G[1] * b + G[2] * d + G[3] * b - two * G[4] * a - G[5] * w + G[6] * d + G[7] * w - two * G[8] * a);
-    v4d gb_ = two * (-two * G[0] * b + G[1] * a + G[2] * w + G[3] * a + G[5] * d - G[6] * w + G[7] * d - two * G[8] * b);
-    v4d gd = two * (-two * G[0] * d - G[1] * w + G[2] * a + G[3] * w - two * G[4] * d + G[5] * b + G[6] * a + G[7] * b);
+    v4d ga_ = two * (G[1] * b + G[2] * d + G[3] * b - two * G[4] * a - G[5] * w + G[6] * d + G[7] * w
+                     - two * G[8] * a);
+    v4d gb_ = two * (-two * G[0] * b + G[1] * a + G[2] * w + G[3] * a + G[5] * d - G[6] * w + G[7] * d
+                     - two * G[8] * b);
+    v4d gd = two * (-two * G[0] * d - G[1] * w + G[2] * a + G[3] * w - two * G[4] * d + G[5] * b + G[6] * a
+                    + G[7] * b);
     v4d dot = SUF(dsel)(sq >= SUF(dbc)(1e-24), (gw * qw + ga_ * qx + gb_ * qy + gd * qz) * inv * inv * inv, zero);
     v4d oq[4] = {gw * inv - qw * dot, ga_ * inv - qx * dot, gb_ * inv - qy * dot, gd * inv - qz * dot};
     for (int i = 0; i < 4; i++) {

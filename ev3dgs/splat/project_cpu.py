@@ -23,8 +23,8 @@ they do not depend on the thread count either. K gets no gradient: a K that requ
 
 float32 inputs run the same two kernels written in C (``cpu_simd.project_forward`` / ``project_backward``,
 in the rasterizer's optional extension, 4 Gaussians per vector): the same float64 operations in the same
-order, so bitwise the same outputs and gradients; float64 inputs, ``EV3DGS_CPU_KERNEL=numba`` and installs without the extension run
-the numba kernels here.
+order, so bitwise the same outputs and gradients; float64 inputs, ``EV3DGS_CPU_KERNEL=numba`` and installs
+without the extension run the numba kernels here.
 """
 from __future__ import annotations
 
