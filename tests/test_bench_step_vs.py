@@ -46,3 +46,13 @@ def test_raster_workload_against_its_own_tree_gives_the_same_image(tmp_path):
     [c] = d["cases"]
     assert (c["width"], c["height"], c["gaussians"]) == (200, 200, 10_000) and c["same_model_after_steps"]
     assert len(c["cpu"]["new_all_ms"]) == 2
+
+
+@pytest.mark.parametrize("case", ["346x260", "346x260:zero", "0x260:50000", "346:50000"])
+def test_a_malformed_case_is_an_error(tmp_path, case):
+    js = tmp_path / "r.json"
+    out = subprocess.run([sys.executable, str(SCRIPT), "--baseline", str(ROOT), "--case", case, "--json", str(js)],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 2
+    assert out.stderr.strip().startswith("error: ") and len(out.stderr.strip().splitlines()) == 1
+    assert not js.exists()

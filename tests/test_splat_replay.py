@@ -83,9 +83,9 @@ def test_fragments_recorded_only_when_a_gradient_is_needed(monkeypatch):
     seen = []
     real = cpu._fragment_buffers
 
-    def spy(*a, record):
+    def spy(*a, record, **kw):
         seen.append(record)
-        return real(*a, record=record)
+        return real(*a, record=record, **kw)
 
     monkeypatch.setattr(cpu, "_fragment_buffers", spy)
     with torch.no_grad():

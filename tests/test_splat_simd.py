@@ -280,7 +280,7 @@ def test_fallback_to_numba_without_the_extension(monkeypatch):
     monkeypatch.setattr(cpu_simd, "_lib", None)
     assert not cpu_simd.available() and not cpu_simd.active(np.float32, 3)
     called = []
-    monkeypatch.setattr(cpu_simd, "forward", lambda *a: called.append(a))
+    monkeypatch.setattr(cpu_simd, "forward", lambda *a, **kw: called.append(a))
     absent = rasterize("simd", x, W, H, bg)
     assert not called and all(torch.equal(a, b) for a, b in zip(forced, absent))
 
@@ -289,7 +289,7 @@ def test_fallback_to_numba_without_the_extension(monkeypatch):
 def test_float64_and_many_channels_stay_on_numba(monkeypatch):
     called = []
     real = cpu_simd.forward
-    monkeypatch.setattr(cpu_simd, "forward", lambda *a: called.append(1) or real(*a))
+    monkeypatch.setattr(cpu_simd, "forward", lambda *a, **kw: called.append(1) or real(*a, **kw))
     m = torch.tensor([[[4.0, 4.0]]])
     q = torch.tensor([[[0.5, 0.0, 0.5]]])
     o, d, r = torch.tensor([0.8]), torch.tensor([[1.0]]), torch.tensor([[4]])

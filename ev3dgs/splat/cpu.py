@@ -30,7 +30,10 @@ sigma < 0 or alpha < 1/255, stop before a Gaussian that would take T below 1e-4)
 
 float32 calls (the training dtype) run the same tile kernels written in C with 8-lane SIMD when the
 optional extension is built (cpu_simd.py: the same rules and schedule, exp(-sigma) from a polynomial with a
-stated error bound); float64 calls, and every call without the extension, run the numba kernels here.
+stated error bound), and the stages around them in C too: the packing from one record per (camera, Gaussian)
+(cpu_simd.records / pack, bitwise _pack, the fragment slots counted in the same pass), the backward writing
+every per-pair row (no zeroed buffer) and the per-Gaussian sum (cpu_simd.reduce, bitwise _reduce); float64
+calls, and every call without the extension, run the numba kernels here.
 
 Batched: C cameras share one call. Their tile lists are concatenated (camera c's tile t is global tile
 c * n_tiles + t), so forward and backward are one parallel loop over (camera, tile), and the per-pair
@@ -185,23 +188,23 @@ def _per_camera(n_cameras: int) -> int:
     return max(1, -(-numba.get_num_threads() // max(1, n_cameras)))
 
 
-def _fragment_buffers(boxes, dtype, simd=False, *, record: bool) -> tuple:
+def _fragment_buffers(boxes, dtype, simd=False, *, record: bool, start=None) -> tuple:
     """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
     pixel of every tile-list entry's box (an upper bound); for the C kernels (``simd``) 8 slots per box row
-    and group of 8 tile columns (cpu_simd.fragment_slots), exp(-sigma) only (frag_pix empty). Without
-    ``record`` (no input needs a gradient) or over FRAGMENT_BUDGET bytes, nothing is recorded (frag_n empty)
-    and a backward recomputes."""
+    and group of 8 tile columns, exp(-sigma) only (frag_pix empty), counted per entry by cpu_simd.pack
+    (``start``; None: over the budget). Without ``record`` (no input needs a gradient) or over
+    FRAGMENT_BUDGET bytes, nothing is recorded (frag_n empty) and a backward recomputes."""
     none = (np.zeros(1, np.int64), np.zeros(0, np.uint8), np.zeros(0, dtype), np.zeros(0, np.int32))
-    if not record or len(boxes) == 0:
+    if not record or len(boxes) == 0 or (simd and start is None):
         return none
     if simd:
-        slots, per_slot = cpu_simd.fragment_slots(boxes), np.dtype(dtype).itemsize
+        per_slot = np.dtype(dtype).itemsize
     else:
         b = boxes.astype(np.int64)
         slots = (b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)  # empty boxes are stored as (0, -1, 0, -1): 0
         per_slot = 1 + np.dtype(dtype).itemsize
-    start = np.zeros(len(boxes) + 1, np.int64)
-    np.cumsum(slots, out=start[1:])
+        start = np.zeros(len(boxes) + 1, np.int64)
+        np.cumsum(slots, out=start[1:])
     total = int(start[-1])
     if total * per_slot > FRAGMENT_BUDGET:
         return none
@@ -223,10 +226,8 @@ class _RasterizeCPU(torch.autograd.Function):
         """Batched: means2d (C,N,2), conics (C,N,3), colors (C,N,D) or shared (N,D), depths and radii (C,N)."""
         dtype = colors.dtype
         m, q, col, o = (_np(x.to(dtype)) for x in (means2d, conics, colors, opacities))
-        C = m.shape[0]
+        C, N, D = m.shape[0], m.shape[1], col.shape[-1]
         ctx.shared_colors = col.ndim == 2
-        if ctx.shared_colors:
-            col = np.ascontiguousarray(np.broadcast_to(col, (C,) + col.shape))
         bg = _np(background.to(dtype))
         r = _np(radii).astype(np.int64)
         tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
@@ -237,43 +238,56 @@ class _RasterizeCPU(torch.autograd.Function):
         gboxes = _parallel(_pixel_boxes, m, r, q, smax, width, height)
         offsets, ids = _parallel(_bin, gboxes, r, _np(depths), tiles_x, tiles_y, _per_camera(C))
         work = _work_order(offsets)
-        image = np.empty((C, height, width, col.shape[2]), col.dtype)
+        image = np.empty((C, height, width, D), col.dtype)
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
-        params, boxes = _parallel(_pack, m, q, col, o, smax, offsets, ids, gboxes, width, height, tiles_x)
-        ctx.simd = cpu_simd.active(col.dtype, col.shape[2])  # the C kernels (float32), else numba's
-        frags = _fragment_buffers(boxes, col.dtype, ctx.simd, record=any(ctx.needs_input_grad[:4]))
+        record = any(ctx.needs_input_grad[:4])
+        ctx.simd = cpu_simd.active(col.dtype, D)  # the C kernels (float32), else numba's
         if ctx.simd:
+            # the entries packed in C from one record per Gaussian (cpu_simd.records: no broadcast copy of
+            # shared colours, one gather per entry instead of six), bitwise _pack's result
+            recs, slots = cpu_simd.records(m, q, col, o, smax, gboxes)
+            fits = slots * np.dtype(col.dtype).itemsize <= FRAGMENT_BUDGET  # else not counted per entry
+            params, boxes, fstart = cpu_simd.pack(recs, ids, offsets, C, N, D, width, height, record and fits,
+                                                  _threads(work))
+            frags = _fragment_buffers(boxes, col.dtype, True, record=record, start=fstart)
             cpu_simd.forward(params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
                              frags[::2] + frags[3:], _threads(work))
         else:
+            if ctx.shared_colors:
+                col = np.ascontiguousarray(np.broadcast_to(col, (C,) + col.shape))
+            params, boxes = _parallel(_pack, m, q, col, o, smax, offsets, ids, gboxes, width, height, tiles_x)
+            frags = _fragment_buffers(boxes, col.dtype, record=record)
             _parallel(_forward, params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
                       _consts(col.dtype), *frags, _threads(work))
-        ctx.save_for_backward(means2d, conics, colors, opacities, background)
         ctx.arrays = (params, boxes, bg, offsets, ids, work, t_final, last, frags)
-        ctx.size = (width, height, tiles_x, C, m.shape[1], col.shape[2])
+        ctx.save_for_backward(means2d, conics, colors, opacities, background)
+        ctx.size = (width, height, tiles_x, C, N, D)
         alpha = torch.from_numpy(1.0 - t_final)[..., None]
         return torch.from_numpy(image), alpha
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha):
-        params, boxes, bg, offsets, ids, work, t_final, last, frags = ctx.arrays
         width, height, tiles_x, C, N, D = ctx.size
+        t_final = ctx.arrays[-3]
         dtype = t_final.dtype
         gi = (np.zeros((C, height, width, D), dtype) if grad_image is None
               else _np(grad_image).astype(dtype, copy=False))
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(dtype, copy=False)[..., 0])
-        per_pair = np.zeros((len(ids), 6 + D), dtype)
+        params, boxes, bg, offsets, ids, work, t_final, last, frags = ctx.arrays
         # replays the fragments when the forward recorded them (frags not empty), else recomputes them
         if ctx.simd:
+            per_pair = np.empty((len(ids), 6 + D), dtype)  # every row written by the C backward
             cpu_simd.backward(params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last,
                               np.ascontiguousarray(gi), np.ascontiguousarray(ga), per_pair, frags[::2] + frags[3:],
-                              _threads(work))
+                              _threads(work), write_rows=True)
+            g_mean, g_conic, g_ops, g_col = cpu_simd.reduce(per_pair, ids, offsets, C, N, _threads(work))
         else:
+            per_pair = np.zeros((len(ids), 6 + D), dtype)
             _parallel(_backward, params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last, gi, ga,
                       per_pair, _consts(dtype), *frags, _threads(work))
-        g_mean, g_conic, g_ops, g_col = _parallel(_reduce, ids, per_pair, offsets, C, N)
+            g_mean, g_conic, g_ops, g_col = _parallel(_reduce, ids, per_pair, offsets, C, N)
         means2d, conics, colors, opacities, background = ctx.saved_tensors
         grad_bg = None
         if ctx.needs_input_grad[8]:

@@ -54,6 +54,13 @@ kernels deal the list round robin instead: tools/bench/schedule.py compares the 
 times). Tiles own disjoint pixels and per-pair rows, so every result is bitwise the same for any thread
 count and whichever thread ran a tile (tested).
 
+The stages around the kernels (same extension, scalar C: they move data or do float64 arithmetic in the
+numba stages' order, so their results are bitwise those of the numba stages, tested): ``records`` (one
+64-byte record per camera and Gaussian: kernel inputs and pixel box) and ``pack`` (cpu_tiles._pack from
+the records, one gather per entry, and the fragment slots per entry), the backward's ``write_rows`` (every
+per-pair row written, no zeroed buffer), ``reduce`` (cpu_backward._reduce), and ``project_forward`` /
+``project_backward`` (project_cpu's kernels, float32 inputs, 4 Gaussians per vector of float64 lanes).
+
 Used when the extension was built and imported, the colours are float32 with at most DMAX channels and
 KERNEL is "simd" (the default; the environment variable EV3DGS_CPU_KERNEL=numba, or setting KERNEL, selects
 the numba kernels, which serve float64 and are the fallback without a C compiler).
@@ -90,7 +97,21 @@ class Job(ctypes.Structure):
                 ("background", _P), ("D", _I), ("width", _I), ("height", _I), ("tiles_x", _I), ("n_tiles", _I),
                 ("image", _P), ("t_final", _P), ("last", _P), ("frag_start", _P), ("frag_e", _P),
                 ("frag_n", _P), ("record", _I), ("grad_image", _P), ("grad_alpha", _P), ("per_pair", _P),
-                ("n_threads", _I), ("isa", _I), ("tile_ns", _P)]
+                ("n_threads", _I), ("isa", _I), ("tile_ns", _P), ("write_rows", _I)]
+
+
+_D = ctypes.c_double
+
+
+class Proj(ctypes.Structure):
+    """_raster.c's proj_t."""
+    _fields_ = [("means", _P), ("quats", _P), ("scales", _P), ("opac", _P), ("sh", _P), ("N", _I), ("C", _I),
+                ("KS", _I), ("deg", _I), ("width", _I), ("height", _I), ("vm", _P), ("campos", _P), ("cam", _P),
+                ("near", _D), ("far", _D), ("eps2d", _D), ("alpha_min", _D), ("radius_margin", _D),
+                ("means2d", _P), ("conics", _P), ("depths", _P), ("colors", _P), ("radii", _P),
+                ("g_m2d", _P), ("g_con", _P), ("g_dep", _P), ("g_col", _P),
+                ("g_means", _P), ("g_quats", _P), ("g_scales", _P), ("g_sh", _P), ("want_vm", _I), ("g_vm", _P),
+                ("n_threads", _I), ("isa", _I)]
 
 
 _lib = None
@@ -108,6 +129,15 @@ def _load():
         lib.ev3dgs_raster_isa.restype = ctypes.c_int
         lib.ev3dgs_exp_neg.argtypes = [_P, _P, _I, _I]
         lib.ev3dgs_exp_neg.restype = None
+        lib.ev3dgs_raster_records.argtypes = [_P, _I, _I, _I, _I, _P, _P, _P, _I, _P, _P, _P]
+        lib.ev3dgs_raster_records.restype = ctypes.c_int64
+        lib.ev3dgs_raster_pack.argtypes = [_P, _P, _P, _I, _I, _I, _I, _I, _I, _I, _P, _P, _P, _I]
+        lib.ev3dgs_raster_pack.restype = ctypes.c_int64
+        lib.ev3dgs_raster_reduce.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I]
+        lib.ev3dgs_raster_reduce.restype = ctypes.c_int
+        for name in ("ev3dgs_project_forward", "ev3dgs_project_backward"):
+            getattr(lib, name).argtypes = [ctypes.POINTER(Proj)]
+            getattr(lib, name).restype = None
         _lib = lib
     return _lib
 
@@ -164,6 +194,60 @@ def _keep_tile_ns(kind, job):
         TILE_TIMES.append((kind, _pending.pop("tile_ns")))
 
 
+def _aligned(shape, dtype, align=64) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data starts on an ``align``-byte boundary."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape))
+    raw = np.empty(n * dtype.itemsize + align, np.uint8)
+    off = (-raw.ctypes.data) % align
+    return raw[off:off + n * dtype.itemsize].view(dtype).reshape(shape)
+
+
+def record_stride(channels: int) -> int:
+    """float32 words per Gaussian record: 7 + D values and 4 box ints, padded to 16 (one 64-byte cache line,
+    D <= 5) or 32."""
+    return 16 if 11 + channels <= 16 else 32
+
+
+def records(means2d, conics, colors, opacities, sigma_max, gboxes) -> tuple:
+    """(recs, slots): recs (C * N, record_stride(D)) float32, 64-byte aligned, per camera and Gaussian its kernel
+    inputs and pixel box (see _raster.c's ev3dgs_raster_records; colours (C, N, D) or shared (N, D)); slots:
+    the fragment slots all the tile-list entries take (as ``prep`` counts them per entry)."""
+    C, N = gboxes.shape[:2]
+    D = colors.shape[-1]
+    S = record_stride(D)
+    recs = _aligned((C * N, S), np.float32)
+    slots = _load().ev3dgs_raster_records(_ptr(recs), S, C, N, D, _ptr(means2d), _ptr(conics), _ptr(colors),
+                                          0 if colors.ndim == 2 else N * D, _ptr(opacities), _ptr(sigma_max),
+                                          _ptr(gboxes))
+    return recs, int(slots)
+
+
+def pack(recs, ids, offsets, C, N, D, width, height, slots: bool, n_threads: int):
+    """cpu_tiles._pack's (params, boxes), bitwise, from the records; with ``slots`` also frag_start (K + 1,):
+    entry k's fragment slots are frag_start[k] ... frag_start[k + 1] - 1 (as fragment_slots counts them),
+    else None. See _raster.c's ev3dgs_raster_pack."""
+    K = len(ids)
+    params, boxes = np.empty((K, 7 + D), np.float32), np.empty((K, 4), np.int32)
+    start = np.empty(K + 1, np.int64) if slots else None
+    _load().ev3dgs_raster_pack(_ptr(ids), _ptr(offsets), _ptr(recs), recs.shape[1], D, C, N, width, height,
+                               -(-width // 16), _ptr(params), _ptr(boxes), _ptr(start), n_threads)
+    return params, boxes, start
+
+
+def reduce(per_pair, ids, offsets, C, N, n_threads):
+    """cpu_backward._reduce's result (bitwise: the same float32 sums in the same order), cameras in parallel."""
+    D = per_pair.shape[1] - 6
+    acc = np.empty((C, N, 6 + D), np.float32)
+    g_mean, g_conic = np.empty((C, N, 2), np.float32), np.empty((C, N, 3), np.float32)
+    g_op, g_col = np.empty((C, N), np.float32), np.empty((C, N, D), np.float32)
+    if _load().ev3dgs_raster_reduce(_ptr(per_pair), _ptr(ids), _ptr(offsets), C, (len(offsets) - 1) // C, N, D,
+                                    _ptr(acc), _ptr(g_mean), _ptr(g_conic), _ptr(g_op), _ptr(g_col),
+                                    n_threads) != 0:
+        raise ValueError("C rasterizer: unsupported channel count")
+    return g_mean, g_conic, g_op, g_col
+
+
 def forward(params, boxes, offsets, work, background, width, height, tiles_x, image, t_final, last, frags,
             n_threads):
     """cpu._forward's contract (float32); frags = (frag_start, frag_e, frag_n), frag_n empty: not recorded."""
@@ -172,22 +256,51 @@ def forward(params, boxes, offsets, work, background, width, height, tiles_x, im
     n_tiles = tiles_x * (-(-height // 16))
     job = Job(_ptr(params), _ptr(boxes), _ptr(offsets), _ptr(work), len(work), _ptr(background),
               image.shape[3], width, height, tiles_x, n_tiles, _ptr(image), _ptr(t_final), _ptr(last),
-              _ptr(start), _ptr(fe), _ptr(fn), int(record), None, None, None, n_threads, ISA, _tile_ns(offsets))
+              _ptr(start), _ptr(fe), _ptr(fn), int(record), None, None, None, n_threads, ISA, _tile_ns(offsets), 0)
     if _load().ev3dgs_raster_forward(ctypes.byref(job)) != 0:
         raise ValueError("C rasterizer: unsupported channel count")
     _keep_tile_ns("forward", job)
 
 
 def backward(params, boxes, offsets, work, background, width, height, tiles_x, t_final, last, grad_image,
-             grad_alpha, per_pair, frags, n_threads):
-    """cpu_backward._backward's contract (float32): per_pair[k] gets entry k's gradient."""
+             grad_alpha, per_pair, frags, n_threads, write_rows=False):
+    """cpu_backward._backward's contract (float32): per_pair[k] gets entry k's gradient, added to it, or with
+    ``write_rows`` written (every row, 0 for an entry without fragments: per_pair need not be zeroed)."""
     start, fe, fn = frags
     record = len(fn) == len(params) and len(params) > 0
     n_tiles = tiles_x * (-(-height // 16))
     job = Job(_ptr(params), _ptr(boxes), _ptr(offsets), _ptr(work), len(work), _ptr(background),
               per_pair.shape[1] - 6, width, height, tiles_x, n_tiles, None, _ptr(t_final), _ptr(last),
               _ptr(start), _ptr(fe), _ptr(fn), int(record), _ptr(grad_image), _ptr(grad_alpha), _ptr(per_pair),
-              n_threads, ISA, _tile_ns(offsets))
+              n_threads, ISA, _tile_ns(offsets), int(write_rows))
     if _load().ev3dgs_raster_backward(ctypes.byref(job)) != 0:
         raise ValueError("C rasterizer: unsupported channel count")
     _keep_tile_ns("backward", job)
+
+
+def project_active(*arrays) -> bool:
+    """Whether the projection + SH kernels run in C: the C kernels selected and built, every input float32."""
+    return KERNEL == "simd" and all(a.dtype == np.float32 for a in arrays) and available()
+
+
+def project_forward(m, q, s, o, sh, deg, vm, campos, cam, width, height, near, far, eps2d, alpha_min, radius_margin,
+                    means2d, conics, depths, colors, radii, n_threads):
+    """project_cpu._project_forward's contract, float32 inputs and outputs (bitwise its results)."""
+    p = Proj(means=_ptr(m), quats=_ptr(q), scales=_ptr(s), opac=_ptr(o), sh=_ptr(sh), N=len(m), C=len(vm),
+             KS=sh.shape[1], deg=deg, width=width, height=height, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam),
+             near=near, far=far, eps2d=eps2d, alpha_min=alpha_min, radius_margin=radius_margin,
+             means2d=_ptr(means2d), conics=_ptr(conics), depths=_ptr(depths), colors=_ptr(colors), radii=_ptr(radii),
+             n_threads=n_threads, isa=ISA)
+    _load().ev3dgs_project_forward(ctypes.byref(p))
+
+
+def project_backward(m, q, s, o, sh, deg, vm, campos, cam, near, far, eps2d, g_m2d, g_con, g_dep, g_col,
+                     g_means, g_quats, g_scales, g_sh, want_vm, g_vm, n_threads):
+    """project_cpu._project_backward's contract, float32 inputs and gradients (rounded from its float64 ones:
+    bitwise the numba kernel's after .to(float32)); g_vm (blocks, C, 15) float64, zeroed."""
+    p = Proj(means=_ptr(m), quats=_ptr(q), scales=_ptr(s), opac=_ptr(o), sh=_ptr(sh), N=len(m), C=len(vm),
+             KS=sh.shape[1], deg=deg, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam), near=near, far=far,
+             eps2d=eps2d, g_m2d=_ptr(g_m2d), g_con=_ptr(g_con), g_dep=_ptr(g_dep), g_col=_ptr(g_col),
+             g_means=_ptr(g_means), g_quats=_ptr(g_quats), g_scales=_ptr(g_scales), g_sh=_ptr(g_sh),
+             want_vm=int(want_vm), g_vm=_ptr(g_vm), n_threads=n_threads, isa=ISA)
+    _load().ev3dgs_project_backward(ctypes.byref(p))

@@ -20,15 +20,22 @@ culled as non-finite contribute nothing to the camera gradient (the rasterizer g
 radius is 0). The per-camera sums over Gaussians are taken in fixed blocks (VM_BLOCK) in index order, so
 they do not depend on the thread count either. K gets no gradient: a K that requires one makes
 ``rasterization`` use the torch path.
+
+float32 inputs run the same two kernels written in C (``cpu_simd.project_forward`` / ``project_backward``,
+in the rasterizer's optional extension, 4 Gaussians per vector): the same float64 operations in the same
+order, so bitwise the same outputs and gradients; float64 inputs, ``EV3DGS_CPU_KERNEL=numba`` and installs
+without the extension run the numba kernels here.
 """
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 from numba import njit, prange
 
+from . import cpu_simd
 from .project import ALPHA_MIN, RADIUS_MARGIN
 from .sh import C0, C1, C2, C3
 
@@ -469,7 +476,8 @@ class _ProjectCPU(torch.autograd.Function):
         dtype = means.dtype
         m, q, s = _in(means), _in(quats), _in(scales)
         o = _in(opacities)
-        shc = _in(sh) if deg >= 0 else np.zeros((len(m), 1, 3))
+        ctx.c = cpu_simd.project_active(m, q, s, o, *((_in(sh),) if deg >= 0 else ()))  # C kernels (float32)
+        shc = _in(sh) if deg >= 0 else np.zeros((len(m), 1, 3), np.float32 if ctx.c else np.float64)
         vm = _f64(viewmats)
         cam, campos = camera_table(vm, _f64(K), width, height)
         C, N = vm.shape[0], m.shape[0]
@@ -479,8 +487,12 @@ class _ProjectCPU(torch.autograd.Function):
         means2d, conics = np.empty((C, N, 2), odt), np.empty((C, N, 3), odt)
         depths, colors = np.empty((C, N), odt), np.empty((C, N, 3), odt)
         radii = np.empty((C, N), np.int32)
-        _parallel(_project_forward, m, q, s, o, shc, deg, vm, campos, cam, width, height, near, far, eps2d, amin,
-                  means2d, conics, depths, colors, radii)
+        if ctx.c:
+            cpu_simd.project_forward(m, q, s, o, shc, deg, vm, campos, cam, width, height, near, far, eps2d, amin,
+                                     RADIUS_MARGIN, means2d, conics, depths, colors, radii, numba.get_num_threads())
+        else:
+            _parallel(_project_forward, m, q, s, o, shc, deg, vm, campos, cam, width, height, near, far, eps2d, amin,
+                      means2d, conics, depths, colors, radii)
         ctx.arrays = (m, q, s, o, shc, vm, campos, cam)
         # the float32 arrays above share memory with the inputs (no copies): saved through autograd so that an
         # in-place change of an input before the backward is an error, not a gradient at the changed values
@@ -501,20 +513,27 @@ class _ProjectCPU(torch.autograd.Function):
         deg, near, far, eps2d, dtype, sh_shape = ctx.consts
         C, N = vm.shape[0], m.shape[0]
 
-        def arr(g, shape):
-            return np.zeros(shape) if g is None else _in(g)
-
-        gm2d, gcon = arr(g_m2d, (C, N, 2)), arr(g_con, (C, N, 3))
-        gdep, gcol = arr(g_dep, (C, N)), arr(g_col, (C, N, 3))
-        g_means, g_quats, g_scales = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
-        g_means[:] = 0.0
-        g_quats[:] = 0.0
-        g_scales[:] = 0.0
-        g_sh = np.zeros((N, shc.shape[1], 3))
         want_vm = bool(ctx.needs_input_grad[5])
         g_vm = np.zeros(((N + VM_BLOCK - 1) // VM_BLOCK if want_vm else 1, C, 15))
-        _parallel(_project_backward, m, q, s, o, shc, deg, vm, campos, cam, near, far, eps2d,
-                  gm2d, gcon, gdep, gcol, g_means, g_quats, g_scales, g_sh, want_vm, g_vm)
+        grads = [None if g is None else _in(g) for g in (g_m2d, g_con, g_dep, g_col)]
+        if ctx.c and all(g is None or g.dtype == np.float32 for g in grads):
+            gm2d, gcon, gdep, gcol = (np.zeros(shape, np.float32) if g is None else g
+                                      for g, shape in zip(grads, ((C, N, 2), (C, N, 3), (C, N), (C, N, 3))))
+            g_means, g_quats, g_scales = (np.empty((N, 3), np.float32), np.empty((N, 4), np.float32),
+                                          np.empty((N, 3), np.float32))
+            g_sh = np.empty((N, shc.shape[1], 3), np.float32)
+            cpu_simd.project_backward(m, q, s, o, shc, deg, vm, campos, cam, near, far, eps2d, gm2d, gcon, gdep, gcol,
+                                      g_means, g_quats, g_scales, g_sh, want_vm, g_vm, numba.get_num_threads())
+        else:
+            gm2d, gcon, gdep, gcol = (np.zeros(shape) if g is None else g
+                                      for g, shape in zip(grads, ((C, N, 2), (C, N, 3), (C, N), (C, N, 3))))
+            g_means, g_quats, g_scales = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
+            g_means[:] = 0.0
+            g_quats[:] = 0.0
+            g_scales[:] = 0.0
+            g_sh = np.zeros((N, shc.shape[1], 3))
+            _parallel(_project_backward, m, q, s, o, shc, deg, vm, campos, cam, near, far, eps2d,
+                      gm2d, gcon, gdep, gcol, g_means, g_quats, g_scales, g_sh, want_vm, g_vm)
         grad_sh = torch.from_numpy(g_sh).to(dtype) if deg >= 0 and ctx.needs_input_grad[4] else None
         t = lambda a: torch.from_numpy(a).to(dtype)  # noqa: E731
         grad_vm = t(viewmat_grad(g_vm, vm)).to(ctx.vm_dtype) if want_vm else None

@@ -264,9 +264,9 @@ class KernelClock:
         self.process_s = 0.0  # CPU time of all the process's threads
         self.fragments = 0
 
-    def _timed(self, name, fn, *a):
+    def _timed(self, name, fn, *a, **kw):
         t0, w0, p0 = time.thread_time(), time.perf_counter(), time.process_time()
-        out = fn(*a)
+        out = fn(*a, **kw)
         self.wall_s += time.perf_counter() - w0
         self.process_s += time.process_time() - p0
         self.cpu_s[name] += time.thread_time() - t0
@@ -280,16 +280,16 @@ class KernelClock:
             name = names.get(getattr(kernel, "__name__", ""))
             return self._timed(name, real_parallel, kernel, *a) if name else real_parallel(kernel, *a)
 
-        def fwd(*a):
-            out = self._timed("forward", real_fwd, *a)
+        def fwd(*a, **kw):
+            out = self._timed("forward", real_fwd, *a, **kw)
             frag_n = a[11][2]
-            if len(frag_n) == len(a[0]):
+            if len(frag_n) == (len(a[0]) if a[0] is not None else len(kw["ids"])):
                 self.fragments = int(frag_n.sum())
             return out
 
         self.cpu._parallel = parallel
         self.cs.forward = fwd
-        self.cs.backward = lambda *a: self._timed("backward", real_bwd, *a)
+        self.cs.backward = lambda *a, **kw: self._timed("backward", real_bwd, *a, **kw)
         return self
 
     def __exit__(self, *exc):

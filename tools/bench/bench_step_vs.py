@@ -152,6 +152,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="96x72 and 173x130 with 10k Gaussians only")
     ap.add_argument("--raster", action="store_true",
                     help="the rasterizer's forward + backward on bench_raster's 10k cloud at 200x200 instead of the step")
+    ap.add_argument("--case", default=None, metavar="WxH:N",
+                    help="one step case only, e.g. 346x260:50000 (default: every size and Gaussian count)")
     ap.add_argument("--json", default="tools/results/bench_step_vs.json")
     ap.add_argument("--plot", default="tools/results/bench_step_vs.png")
     args = ap.parse_args(argv)
@@ -165,6 +167,17 @@ def main(argv=None) -> int:
         return 2
     sizes, counts = (SIZES[:2], COUNTS[:1]) if args.quick else (SIZES, COUNTS)
     cases = [(n, w, h) for (w, h) in sizes for n in counts]
+    if args.case:
+        try:
+            size, n = args.case.split(":")
+            w, h = (int(v) for v in size.lower().split("x"))
+            cases = [(int(n), w, h)]
+        except ValueError:
+            print(f"error: --case must look like 346x260:50000, got {args.case!r}", file=sys.stderr)
+            return 2
+        if min(cases[0]) < 1:
+            print(f"error: --case needs a positive size and Gaussian count, got {args.case!r}", file=sys.stderr)
+            return 2
     if args.raster:
         cases = [(10_000, 200, 200)]
     rows = []
