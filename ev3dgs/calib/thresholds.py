@@ -57,7 +57,7 @@ both the spread and the thresholds; trimmed_moments models all three for the sim
 at its floor, and invert_trimmed solves for the nominal threshold and sigma. Modelling the trim instead of
 widening it matters where many thresholds sit near the floor (sensor C: OFF 0.2, sigma 0.12): those pixels'
 counts stop following 1 / C_i (refractory-limited, shot noise scaled up), and both the data and the model
-leave them out alike. Every pixel with a selected pair counts: a per-pixel outlier test would trim the spread.
+leave them out alike. Outlier pixels (summed residual beyond 5 robust s.d., widened by sigma N) are dropped.
 
 Uncertainties: bootstrap over pixels (the dark level refitted in every resample).
 """
@@ -426,11 +426,25 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
         gi = int(np.argmin(spread)) if np.isfinite(spread).any() else 0
         gi = _significant_curve(grid, bands, gi, np.random.default_rng(seed + 2))
         smp, tot = samples[gi], totals[gi]
-        # every pixel with a selected pair: the trim (per pair) is the fit's only selection, and the mismatch
-        # model (trimmed_moments) reproduces it; a per-pixel outlier test would trim the spread being measured
         used = (tot[:, [1, 2, 4, 5]].sum(1) > 0) | (np.abs(tot[:, [0, 3]]).sum(1) > 0)
         keep = used
+        outlier = np.zeros(P, bool)
         c_on, c_off = solve(tot[keep].sum(0))
+        if np.isfinite([c_on, c_off]).all():
+            # robust: drop pixels whose summed residual is an outlier (flicker, pixels whose APS and DVS
+            # disagree), allowing for the mismatch (a pixel's own threshold off the mean by sigma misses by sigma
+            # N), so that the spread being measured is not trimmed: the trimmed model's spread, 5 robust s.d.
+            mom0 = mismatch_moments(smp.dL, smp.on, smp.off, smp.up, smp.dn, c_on, c_off)[keep]
+            s_on0, s_off0 = _mismatch(mom0, c_on, c_off, None, 0, _trim_samples(smp, keep, c_on, c_off, seed),
+                                      spread_only=True)
+            r = np.stack([tot[:, 0] - c_on * tot[:, 1] + c_off * tot[:, 2],
+                          tot[:, 3] - c_off * tot[:, 5] + c_on * tot[:, 4]])
+            scale = 1.4826 * np.median(np.abs(r[:, used])) + 1e-12
+            spread = np.sqrt(scale ** 2 + np.stack([(s_on0 * tot[:, 1]) ** 2 + (s_off0 * tot[:, 2]) ** 2,
+                                                    (s_off0 * tot[:, 5]) ** 2 + (s_on0 * tot[:, 4]) ** 2]))
+            outlier[used] = (np.abs(r / spread)[:, used] > 5).any(0)
+            keep = used & ~outlier
+            c_on, c_off = solve(tot[keep].sum(0))
         if np.isfinite([c_on, c_off]).all():
             break
         if not run_starts:
@@ -443,6 +457,7 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
     notes.append(f"{int((smp.up0 & ~smp.up).sum() + (smp.dn0 & ~smp.dn).sum())} of "
                  f"{int(smp.up0.sum() + smp.dn0.sum())} frame pairs trimmed (residual beyond both thresholds "
                  "plus 4 sigma of frame noise)")
+    notes.append(f"{int(outlier.sum())} pixels dropped as outliers of the threshold fit")
     # bootstrap over pixels, the dark level refitted each time
     rng = np.random.default_rng(seed)
     kidx = np.flatnonzero(keep)
@@ -460,15 +475,8 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
     # mismatch from products of the fit's frame pairs, and the thresholds corrected with it: both statistics
     # (the ratio of sums and the pair products) are modelled with the trim that selected their pairs
     mom = mismatch_moments(smp.dL, smp.on, smp.off, smp.up, smp.dn, c_on, c_off)[keep]
-    trim = c_on + c_off + TAU_SIGMAS * smp.sd
-    srng = np.random.default_rng(seed + 3)
-    trim_samples = []
-    for m0, sgn in ((smp.up0, 1.0), (smp.dn0, -1.0)):
-        m0 = m0 & keep[None, :]
-        D, T = sgn * smp.dL[m0], trim[m0]
-        pick = srng.choice(len(D), min(TRIM_SAMPLE, len(D)), replace=False) if len(D) else np.zeros(0, int)
-        trim_samples.append((D[pick], T[pick]))
-    s_on, s_off, c_on_v, c_off_v, dcdh = _mismatch(mom, c_on, c_off, rng, boot, trim_samples)
+    s_on, s_off, c_on_v, c_off_v, dcdh = _mismatch(mom, c_on, c_off, rng, boot,
+                                                   _trim_samples(smp, keep, c_on, c_off, seed))
     c_on, c_off = c_on_v.value, c_off_v.value
     # the thresholds' s.e.: the ratio of sums' (curve choice included) through dc/dh, and the spread's part
     for i, v in enumerate((c_on_v, c_off_v)):
@@ -575,7 +583,21 @@ def invert_moments(h_obs: float, v_obs: float, floor: float = 0.01) -> tuple[flo
 TRIM_SAMPLE = 300   # frame pairs (D, T) the trimmed model averages over (a random subset of the fit's)
 
 
-def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int, samples=None):
+def _trim_samples(smp: _Samples, keep: np.ndarray, c_on: float, c_off: float, seed: int):
+    """Per polarity (D, T) of up to TRIM_SAMPLE of the fit's frame pairs (before the trim, kept pixels): the
+    pair's change in its own direction and the trim's bound, for trimmed_moments."""
+    trim = c_on + c_off + TAU_SIGMAS * smp.sd
+    srng = np.random.default_rng(seed + 3)
+    out = []
+    for m0, sgn in ((smp.up0, 1.0), (smp.dn0, -1.0)):
+        m0 = m0 & keep[None, :]
+        D, T = sgn * smp.dL[m0], trim[m0]
+        pick = srng.choice(len(D), min(TRIM_SAMPLE, len(D)), replace=False) if len(D) else np.zeros(0, int)
+        out.append((D[pick], T[pick]))
+    return out
+
+
+def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int, samples=None, spread_only=False):
     """ON and OFF mismatch from the pair products (see mismatch_moments) and the thresholds corrected with it:
     (sigma_on, sigma_off, c_on, c_off as Values, (dc_on/dh_on, dc_off/dh_off)). samples: per polarity the
     (change D, trim T) of the fit's frame pairs for trimmed_moments; None: no trim (T infinite).
@@ -598,6 +620,13 @@ def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int, sample
     (the delta method; one inversion per resample would cost seconds each)."""
     if samples is None:
         samples = [(np.ones(1), np.full(1, np.inf))] * 2
+    if spread_only:   # (sigma_on, sigma_off) of the full sample, 0 where none: no bootstrap, no Values
+        out = []
+        for j, h, (D, T) in zip((0, 2), (c_on, c_off), samples):
+            A, B = mom[:, j].sum(), mom[:, j + 1].sum()
+            sig = invert_trimmed(h, A / B, D, T)[1] if B > 0 else 0.0
+            out.append(float(sig) if np.isfinite(sig) else 0.0)
+        return tuple(out)
     n = len(mom)
     idx = [rng.integers(0, n, n) for _ in range(boot)]
     used = [int(((mom[:, j + 1] > 0)).sum()) for j in (0, 2)]
