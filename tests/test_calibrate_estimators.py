@@ -53,7 +53,7 @@ def test_mismatch_from_pair_products_monte_carlo(c, share):
     dn = np.zeros_like(up)
     h = dL.sum() / on.sum()                                       # the ratio of sums the fit solves
     mom = mismatch_moments(dL, on, off, up, dn, h, 1.0)
-    s_on, _, c_on, _ = _mismatch(mom, h, 1.0, np.random.default_rng(1), 100)
+    s_on, _, c_on, _, _ = _mismatch(mom, h, 1.0, np.random.default_rng(1), 100)
     if share == 0:
         assert s_on.value is None or s_on.value < 4 * s_on.se     # not resolved, or within noise of zero
         assert c_on.value == pytest.approx(c, abs=4 * c_on.se + 1e-3)
@@ -82,6 +82,45 @@ def test_mismatch_from_a_short_recording(tmp_path):
     for v in (th.sigma_on, th.sigma_off):
         assert v.value is not None, v.note
         assert abs(v.value - truth.sigma) <= 4 * v.se + 0.1 * truth.sigma, (v.value, v.se)
+
+
+def test_mismatch_with_many_pixels_at_the_floor(tmp_path):
+    """Sensor C's thresholds (ON 0.4, OFF 0.2, sigma 0.12: 40 % of the mean) clipped at the simulator's floor of
+    0.01: 5 % of the OFF thresholds sit at the floor and 10 % below 0.05, and those pixels fire far more than
+    the rest. The untrimmed moment model (weights 1 / C_i^2 over the whole clipped normal) read C_off -17 % (9
+    s.e.) and the OFF spread -23 % (4.5 s.e.) here; the trimmed model (trimmed_moments: the fit's own pair
+    trim in the model) must hold C_off and both spreads within 3 bootstrap s.e., and C_on within the recovery
+    tests' 10 % (frame noise deciding which pairs pass the cut, see test_calibrate.test_recovery)."""
+    from ev3dgs.calib.aps import load_recording, pair_counts
+    from ev3dgs.calib.synth import Truth, make_recording
+    from ev3dgs.calib.thresholds import fit_thresholds
+    from ev3dgs.logmap import DEFAULT_LOG_KNEE
+
+    truth = Truth(pos_threshold=0.4, neg_threshold=0.2, sigma=0.12, leak_hz=0.0, shot_hz=0.0, refractory_us=1.0,
+                  hot=())
+    make_recording(tmp_path / "c.aedat4", truth, seed=0, seconds=1.0)
+    rec = load_recording(tmp_path / "c.aedat4")
+    on, off = pair_counts(rec)
+    th = fit_thresholds(rec, on, off, boot=20, seed=1, curve=(truth.dark_dn, DEFAULT_LOG_KNEE),
+                        refractory_us=truth.refractory_us)
+    assert abs(th.c_off.value - truth.neg_threshold) < 3 * th.c_off.se, (th.c_off.value, th.c_off.se)
+    assert th.c_on.value == pytest.approx(truth.pos_threshold, rel=0.10)
+    for v in (th.sigma_on, th.sigma_off):
+        assert v.value is not None, v.note
+        assert abs(v.value - truth.sigma) < 3 * v.se, (v.value, v.se)
+
+
+def test_trimmed_model_without_trim_is_the_untrimmed_one():
+    """With an infinite trim the trimmed model is the untrimmed one (model_moments, an independent quadrature of
+    the same clipped normal)."""
+    from ev3dgs.calib.thresholds import model_moments, trimmed_moments
+
+    D = np.linspace(0.05, 0.9, 40)
+    for c, s in ((0.2, 0.03), (0.2, 0.12), (0.4, 0.12)):
+        h0, v0 = model_moments(c, s)
+        h, v = trimmed_moments(c, s, h0, D, np.full(len(D), np.inf), nodes=2001)
+        assert h == pytest.approx(h0, rel=1e-6)
+        assert v == pytest.approx(v0, rel=1e-6)
 
 
 def _iei_recording(intervals_per_pixel, width=100):

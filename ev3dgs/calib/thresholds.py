@@ -51,10 +51,13 @@ faster than the APS does.
 Mismatch: from the products of the residuals e = dL - C_on N_on + C_off N_off of every two selected frame
 pairs of a pixel at least two pairs apart, against the products of their counts (see _mismatch for the
 derivation): every pixel with two such pairs counts, whatever its number of events. The count weights (pixels
-with a low threshold fire more) and the ratio of sums (a harmonic mean: C (1 - sigma^2 / C^2) to second
-order) bias both the spread and the thresholds; invert_moments removes both for the simulator's clipped
-normal draws. The pair trim and the outlier test allow for the mismatch (a second pass), since a pixel far
-from the mean threshold with many events is neither a bad pair nor an outlier.
+with a low threshold fire more), the ratio of sums (a harmonic mean: C (1 - sigma^2 / C^2) to second order)
+and the pair trim (a pixel far below the mean fires many events per pair, and its pairs fall outside) bias
+both the spread and the thresholds; trimmed_moments models all three for the simulator's normal draws clipped
+at its floor, and invert_trimmed solves for the nominal threshold and sigma. Modelling the trim instead of
+widening it matters where many thresholds sit near the floor (sensor C: OFF 0.2, sigma 0.12): those pixels'
+counts stop following 1 / C_i (refractory-limited, shot noise scaled up), and both the data and the model
+leave them out alike. Outlier pixels (summed residual beyond 5 robust s.d., widened by sigma N) are dropped.
 
 Uncertainties: bootstrap over pixels (the dark level refitted in every resample).
 """
@@ -260,7 +263,6 @@ class _Samples:
         self.n_on, self.n_off = on.astype(float), off.astype(float)
         self.held = held
         self.on, self.off = self.n_on, self.n_off
-        self.sigma = (0.0, 0.0)      # threshold mismatch (ON, OFF) the trim allows for
 
     def weigh(self, c_on: float, c_off: float) -> None:
         """The held-weighted counts, each pair's capped: what the holds add (W - N) C cannot exceed the pair's
@@ -277,9 +279,8 @@ class _Samples:
         (the reference residual at both ends) plus frame noise, not more. Events lost to the refractory
         period at fast edges, flicker and hot pixels land outside."""
         r = np.abs(self.dL - c_on * self.on + c_off * self.off)
-        s_on, s_off = self.sigma
-        # a pixel's own threshold is off the mean by about sigma: N events then miss dL by sigma N
-        ok = r <= c_on + c_off + TAU_SIGMAS * np.sqrt(self.sd ** 2 + (s_on * self.on) ** 2 + (s_off * self.off) ** 2)
+        # a pixel far from the mean threshold lands outside too: trimmed_moments models that (the mismatch)
+        ok = r <= c_on + c_off + TAU_SIGMAS * self.sd
         self.up, self.dn = self.up0 & ok, self.dn0 & ok
 
     def fit(self, iterations: int = 4) -> tuple[float, float]:
@@ -425,50 +426,27 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
         gi = int(np.argmin(spread)) if np.isfinite(spread).any() else 0
         gi = _significant_curve(grid, bands, gi, np.random.default_rng(seed + 2))
         smp, tot = samples[gi], totals[gi]
-        c_on, c_off = solve(tot.sum(0))
+        used = (tot[:, [1, 2, 4, 5]].sum(1) > 0) | (np.abs(tot[:, [0, 3]]).sum(1) > 0)
+        keep = used
         outlier = np.zeros(P, bool)
+        c_on, c_off = solve(tot[keep].sum(0))
         if np.isfinite([c_on, c_off]).all():
-            # robust: drop pixels whose summed residual is an outlier, refit
-            r = np.concatenate([tot[:, 0] - c_on * tot[:, 1] + c_off * tot[:, 2],
-                                tot[:, 3] - c_off * tot[:, 5] + c_on * tot[:, 4]])
-            used = (tot[:, [1, 2, 4, 5]].sum(1) > 0) | (np.abs(tot[:, [0, 3]]).sum(1) > 0)
-            rr = r.reshape(2, P)[:, used]
-            scale = 1.4826 * np.median(np.abs(rr)) + 1e-12
-            outlier[used] = (np.abs(rr) > 5 * scale).any(0)
+            # robust: drop pixels whose summed residual is an outlier (flicker, pixels whose APS and DVS
+            # disagree), allowing for the mismatch (a pixel's own threshold off the mean by sigma misses by sigma
+            # N), so that the spread being measured is not trimmed: the trimmed model's spread, 5 robust s.d.
+            mom0 = mismatch_moments(smp.dL, smp.on, smp.off, smp.up, smp.dn, c_on, c_off)[keep]
+            s_on0, s_off0 = _mismatch(mom0, c_on, c_off, None, 0, _trim_samples(smp, keep, c_on, c_off, seed),
+                                      spread_only=True)
+            r = np.stack([tot[:, 0] - c_on * tot[:, 1] + c_off * tot[:, 2],
+                          tot[:, 3] - c_off * tot[:, 5] + c_on * tot[:, 4]])
+            scale = 1.4826 * np.median(np.abs(r[:, used])) + 1e-12
+            spread = np.sqrt(scale ** 2 + np.stack([(s_on0 * tot[:, 1]) ** 2 + (s_off0 * tot[:, 2]) ** 2,
+                                                    (s_off0 * tot[:, 5]) ** 2 + (s_on0 * tot[:, 4]) ** 2]))
+            outlier[used] = (np.abs(r / spread)[:, used] > 5).any(0)
             keep = used & ~outlier
             c_on, c_off = solve(tot[keep].sum(0))
-            if np.isfinite([c_on, c_off]).all():
-                # second pass that allows for threshold mismatch: a pixel far from the mean threshold with many
-                # events is neither a bad pair nor an outlier pixel, and trimming it biases both the mean
-                # (towards the arithmetic one) and the spread (down)
-                mom0 = mismatch_moments(smp.dL, smp.on, smp.off, smp.up0, smp.dn0, c_on, c_off)[used]
-                sg = []
-                for j, c in ((0, c_on), (2, c_off)):
-                    b = mom0[:, j + 1].sum()
-                    sg.append(invert_moments(c, mom0[:, j].sum() / b)[1] if b > 0 else 0.0)
-                first = (c_on, c_off, keep.copy(), used.copy(), outlier.copy(), tot, bands[gi], smp.up, smp.dn)
-                if max(sg) > 0:
-                    smp.sigma = (sg[0], sg[1])
-                    smp.fit()
-                    bands[gi] = smp.sums(smp.band, smp.nb)
-                    tot = totals[gi] = bands[gi].sum(1)
-                    c_on, c_off = solve(tot.sum(0))
-                    if np.isfinite([c_on, c_off]).all():
-                        r = np.stack([tot[:, 0] - c_on * tot[:, 1] + c_off * tot[:, 2],
-                                      tot[:, 3] - c_off * tot[:, 5] + c_on * tot[:, 4]])
-                        used = (tot[:, [1, 2, 4, 5]].sum(1) > 0) | (np.abs(tot[:, [0, 3]]).sum(1) > 0)
-                        spread = np.sqrt(scale ** 2 + np.stack([(sg[0] * tot[:, 1]) ** 2 + (sg[1] * tot[:, 2]) ** 2,
-                                                                (sg[1] * tot[:, 5]) ** 2 + (sg[0] * tot[:, 4]) ** 2]))
-                        outlier[:] = False
-                        outlier[used] = (np.abs(r / spread)[:, used] > 5).any(0)
-                        keep = used & ~outlier
-                        c_on, c_off = solve(tot[keep].sum(0))
-                    if not np.isfinite([c_on, c_off]).all():   # the second pass cannot solve: keep the first
-                        c_on, c_off, keep, used, outlier, tot, bands[gi], smp.up, smp.dn = first
-                        totals[gi] = tot
-                        smp.sigma = (0.0, 0.0)
-            if np.isfinite([c_on, c_off]).all():
-                break
+        if np.isfinite([c_on, c_off]).all():
+            break
         if not run_starts:
             notes.append("no run of two frame pairs going the same way in both directions: the first pair of "
                          "each run is used too, which biases the thresholds up (the pixels are still crossing "
@@ -476,6 +454,9 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
     if not np.isfinite([c_on, c_off]).all():
         raise InputError(f"{rec.path}: no frame pair shows a log-intensity change with events in both directions "
                          "on well-exposed pixels: the contrast thresholds cannot be fitted")
+    notes.append(f"{int((smp.up0 & ~smp.up).sum() + (smp.dn0 & ~smp.dn).sum())} of "
+                 f"{int(smp.up0.sum() + smp.dn0.sum())} frame pairs trimmed (residual beyond both thresholds "
+                 "plus 4 sigma of frame noise)")
     notes.append(f"{int(outlier.sum())} pixels dropped as outliers of the threshold fit")
     # bootstrap over pixels, the dark level refitted each time
     rng = np.random.default_rng(seed)
@@ -491,13 +472,15 @@ def fit_thresholds(rec: Recording, on: np.ndarray, off: np.ndarray, exclude: np.
     boots = np.asarray(boots).reshape(-1, 3)
     fin = np.isfinite(boots).all(1)
     se = boots[fin].std(0, ddof=1) if fin.sum() > 2 else np.full(3, np.nan)
-    # mismatch from products of frame pairs, and the thresholds' harmonic-mean bias with it
-    # every pixel with a selected pair (hot pixels are excluded already), outliers of the threshold fit included:
-    # that fit's outliers are the pixels whose summed residual is large, and a pixel far from the mean
-    # threshold with many events is one; dropping them would trim the spread being measured
-    mom = mismatch_moments(smp.dL, smp.on, smp.off, smp.up0, smp.dn0, c_on, c_off)[used]
-    s_on, s_off, c_on_v, c_off_v = _mismatch(mom, c_on, c_off, rng, boot)
+    # mismatch from products of the fit's frame pairs, and the thresholds corrected with it: both statistics
+    # (the ratio of sums and the pair products) are modelled with the trim that selected their pairs
+    mom = mismatch_moments(smp.dL, smp.on, smp.off, smp.up, smp.dn, c_on, c_off)[keep]
+    s_on, s_off, c_on_v, c_off_v, dcdh = _mismatch(mom, c_on, c_off, rng, boot,
+                                                   _trim_samples(smp, keep, c_on, c_off, seed))
     c_on, c_off = c_on_v.value, c_off_v.value
+    # the thresholds' s.e.: the ratio of sums' (curve choice included) through dc/dh, and the spread's part
+    for i, v in enumerate((c_on_v, c_off_v)):
+        se[i] = float(np.hypot(dcdh[i] * se[i], v.se or 0.0)) if np.isfinite(se[i]) else np.nan
     sig_vals = [v.value for v in (s_on, s_off) if v.value is not None]
     if sig_vals:
         sigma = float(np.sqrt(np.mean(np.square(sig_vals))))
@@ -597,9 +580,27 @@ def invert_moments(h_obs: float, v_obs: float, floor: float = 0.01) -> tuple[flo
     return float(r.x[0]), float(r.x[1])
 
 
-def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int) -> tuple[Value, Value, Value, Value]:
-    """ON and OFF mismatch from the pair products (see mismatch_moments), with the bias corrections of
-    invert_moments, and the thresholds corrected with them; bootstrap over pixels.
+TRIM_SAMPLE = 300   # frame pairs (D, T) the trimmed model averages over (a random subset of the fit's)
+
+
+def _trim_samples(smp: _Samples, keep: np.ndarray, c_on: float, c_off: float, seed: int):
+    """Per polarity (D, T) of up to TRIM_SAMPLE of the fit's frame pairs (before the trim, kept pixels): the
+    pair's change in its own direction and the trim's bound, for trimmed_moments."""
+    trim = c_on + c_off + TAU_SIGMAS * smp.sd
+    srng = np.random.default_rng(seed + 3)
+    out = []
+    for m0, sgn in ((smp.up0, 1.0), (smp.dn0, -1.0)):
+        m0 = m0 & keep[None, :]
+        D, T = sgn * smp.dL[m0], trim[m0]
+        pick = srng.choice(len(D), min(TRIM_SAMPLE, len(D)), replace=False) if len(D) else np.zeros(0, int)
+        out.append((D[pick], T[pick]))
+    return out
+
+
+def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int, samples=None, spread_only=False):
+    """ON and OFF mismatch from the pair products (see mismatch_moments) and the thresholds corrected with it:
+    (sigma_on, sigma_off, c_on, c_off as Values, (dc_on/dh_on, dc_off/dh_off)). samples: per polarity the
+    (change D, trim T) of the fit's frame pairs for trimmed_moments; None: no trim (T infinite).
 
     Derivation. For one pixel with threshold C_i, an up pair's e_k = (C_i - C) N_k + r_k, where the residual
     r_k = d_k - d_k+1 (the pixel's distance from its reference at the two exposure midpoints) has zero mean and
@@ -607,25 +608,47 @@ def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int) -> tup
     E[e_k e_l] = (C_i - C)^2 N_k N_l. Frame noise enters e through the two frames of a pair only, so it drops
     out too. Summed over every such pair of pairs of every pixel, sum A / sum B estimates a count-weighted
     (C_i - C)^2: every event and every frame pair of a pixel with two or more non-adjacent selected pairs
-    counts, whatever its number of events. The weights (N_k N_l, proportional to 1 / C_i^2) and the harmonic
-    mean C of the ratio of sums bias it; invert_moments removes both for the simulator's clipped normal
-    draws."""
-    def est(m):
-        out = []
-        for j, c in ((0, c_on), (2, c_off)):
-            A, B = m[:, j].sum(), m[:, j + 1].sum()
-            v = A / B if B > 0 else np.nan
-            out.append(invert_moments(c, v))
-        return out
+    counts, whatever its number of events. The weights (N_k N_l, proportional to 1 / C_i^2), the harmonic
+    mean C of the ratio of sums and the trim that selected the pairs bias it; trimmed_moments models all three
+    for the simulator's clipped normal draws, and invert_trimmed solves for (c, sigma). The trim matters where
+    many pixels sit near the floor: their counts follow 1 / C_i only until the refractory period limits them
+    and shot noise (scaled by the nominal over the pixel's threshold) adds to them, and the untrimmed model,
+    whose weights 1 / C_i^2 make them dominate, then reads both moments wrong (C's OFF threshold 0.2 with
+    sigma 0.12: -45 % thresholds); trimmed, both the data and the model leave them out alike.
 
-    full = est(mom)
+    Uncertainty: bootstrap over pixels of the pair products, mapped to (c, sigma) by the inversion's Jacobian
+    (the delta method; one inversion per resample would cost seconds each)."""
+    if samples is None:
+        samples = [(np.ones(1), np.full(1, np.inf))] * 2
+    if spread_only:   # (sigma_on, sigma_off) of the full sample, 0 where none: no bootstrap, no Values
+        out = []
+        for j, h, (D, T) in zip((0, 2), (c_on, c_off), samples):
+            A, B = mom[:, j].sum(), mom[:, j + 1].sum()
+            sig = invert_trimmed(h, A / B, D, T)[1] if B > 0 else 0.0
+            out.append(float(sig) if np.isfinite(sig) else 0.0)
+        return tuple(out)
     n = len(mom)
-    bs = np.array([[x for cs in est(mom[rng.integers(0, n, n)]) for x in cs] for _ in range(boot)]).reshape(-1, 4)
-    se = bs.std(0, ddof=1) if len(bs) > 2 else np.full(4, np.nan)
+    idx = [rng.integers(0, n, n) for _ in range(boot)]
     used = [int(((mom[:, j + 1] > 0)).sum()) for j in (0, 2)]
-    vals = []
-    for i, (pol, (c, sig)) in enumerate(zip(("ON", "OFF"), full)):
-        s_se = float(se[2 * i + 1]) if np.isfinite(se[2 * i + 1]) else None
+    vals, cs, dcdh = [], [], []
+    for i, (pol, j, h, (D, T)) in enumerate(zip(("ON", "OFF"), (0, 2), (c_on, c_off), samples)):
+        A, B = mom[:, j].sum(), mom[:, j + 1].sum()
+        v = A / B if B > 0 else np.nan
+        vb = np.array([mom[k, j].sum() / max(mom[k, j + 1].sum(), 1e-300) for k in idx])
+        c, sig = invert_trimmed(h, v, D, T)
+        if sig > 0:
+            dh, dv = 1e-3 * h, 1e-3 * v
+            ch, sh = invert_trimmed(h + dh, v, D, T)
+            cv, sv = invert_trimmed(h, v + dv, D, T)
+            jac = np.array([[(ch - c) / dh, (cv - c) / dv], [(sh - sig) / dh, (sv - sig) / dv]])
+            cb, sb = c + jac[0, 1] * (vb - v), sig + jac[1, 1] * (vb - v)
+        else:
+            jac = np.array([[1.0, 0.0], [0.0, 0.0]])
+            cb, sb = np.full(len(vb), c), np.sqrt(np.clip(vb, 0, None))
+        c_se = float(cb.std(ddof=1)) if len(vb) > 2 else None
+        s_se = float(sb.std(ddof=1)) if len(vb) > 2 and np.isfinite(sb).all() else None
+        cs.append(Value(float(c), c_se))
+        dcdh.append(float(jac[0, 0]))
         if not np.isfinite(sig) or used[i] == 0:
             vals.append(Value(None, None, f"no pixel has two {pol} frame pairs at least two pairs apart"))
         elif sig <= 0 or (s_se is not None and s_se > sig):
@@ -634,4 +657,72 @@ def _mismatch(mom: np.ndarray, c_on: float, c_off: float, rng, boot: int) -> tup
             vals.append(Value(None, s_se, f"{sig:.3g}{se_text} from {used[i]} pixels: {why}"))
         else:
             vals.append(Value(float(sig), s_se, f"{used[i]} pixels, products of frame pairs two or more apart"))
-    return (vals[0], vals[1], Value(full[0][0], float(se[0])), Value(full[1][0], float(se[2])))
+    return vals[0], vals[1], cs[0], cs[1], tuple(dcdh)
+
+def _triangle_nodes(n: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoint nodes and weights of the triangular density on (-1, 1): the count residual N - D / C of a pair
+    (the reference phases at its two ends, each uniform over a threshold)."""
+    e = (np.arange(n) + 0.5) / n * 2 - 1
+    w = 1 - np.abs(e)
+    return e, w / w.sum()
+
+
+def trimmed_moments(c: float, sigma: float, h: float, D: np.ndarray, T: np.ndarray, floor: float = 0.01,
+                    nodes: int = 201) -> tuple[float, float]:
+    """What the trimmed fit reads for per-pixel thresholds C_i ~ N(c, sigma) clipped at `floor`: the ratio of
+    sums (h) and the pair-product statistic (v), with the trim that selects the pairs in the model.
+
+    A selected pair of change D (> 0, the pair's own direction) on a pixel of threshold x holds N = D / x + eps
+    events, eps the count residual of the reference phases at its two ends (triangular on (-1, 1)); the fit
+    keeps it when its residual e = D - h N = D (1 - h / x) - h eps lies within T (the trim, centred on the
+    fitted threshold h). Then, averaged over the recording's pairs (D, T) and eps:
+      h = E_x[sum D K] / E_x[sum (D / x K + E[eps 1_kept])]              (K = P(kept | D, x)),
+      v = E_x[M1(x)^2] / E_x[M0(x)^2],  M1 = mean E[e 1_kept], M0 = mean E[N 1_kept]
+    (two pairs of one pixel at least two apart have independent residuals: E[e_k e_l] = M1^2 per pixel). A
+    pixel far below the mean fires many events per pair and its pairs fall outside the trim: the model drops
+    them as the fit does, so the low tail at the floor (refractory-limited, noise-dominated pixels the counts'
+    1 / x law does not describe) no longer decides the estimate."""
+    x, w = _clipped_normal_nodes(c, sigma, floor, nodes)
+    w = w / w.sum()
+    e, we = _triangle_nodes()
+    a = D[None, :, None] * (1 - h / x[:, None, None])                     # (X, D, 1)
+    res = a - h * e[None, None, :]                                         # (X, D, E)
+    kept = (np.abs(res) <= T[None, :, None]) * we[None, None, :]
+    K = kept.sum(2)                                                       # (X, D)
+    n_kept = D[None, :] / x[:, None] * K + (kept * e[None, None, :]).sum(2)
+    m1 = (kept * res).sum(2).mean(1)
+    m0 = n_kept.mean(1)
+    hh = float(w @ (D[None, :] * K).mean(1)) / max(float(w @ m0), 1e-300)
+    v = float(w @ (m1 * m1)) / max(float(w @ (m0 * m0)), 1e-300)
+    return hh, v
+
+
+def invert_trimmed(h_obs: float, v_obs: float, D: np.ndarray, T: np.ndarray,
+                   floor: float = 0.01) -> tuple[float, float]:
+    """(c, sigma) whose trimmed_moments are (h_obs, v_obs), with the trim centred on h_obs (the fit's own)."""
+    from scipy.optimize import least_squares
+
+    if not (np.isfinite(h_obs) and np.isfinite(v_obs)) or v_obs <= 1e-12 * h_obs ** 2 or h_obs <= floor or not len(D):
+        return h_obs, 0.0
+
+    def res(p):
+        hm, vm = trimmed_moments(p[0], p[1], h_obs, D, T, floor)
+        return [(hm - h_obs) / h_obs, (vm - v_obs) / v_obs]
+
+    x0 = [h_obs, float(np.sqrt(v_obs))]
+    r = least_squares(res, x0, bounds=([floor * 1.01, 0.0], [np.inf, np.inf]), xtol=1e-10, ftol=1e-10,
+                      gtol=1e-10, x_scale=[h_obs, max(x0[1], 1e-6)], diff_step=1e-3)
+    return float(r.x[0]), float(r.x[1])
+
+
+def invert_trimmed_mean(h_obs: float, sigma: float, D: np.ndarray, T: np.ndarray, floor: float = 0.01) -> float:
+    """The nominal threshold c whose trimmed_moments h is h_obs at a given sigma."""
+    from scipy.optimize import brentq
+
+    if sigma <= 0 or not len(D) or not np.isfinite(h_obs):
+        return h_obs
+    f = lambda c: trimmed_moments(c, sigma, h_obs, D, T, floor)[0] - h_obs   # noqa: E731
+    lo, hi = max(floor * 1.01, 0.3 * h_obs), 3 * h_obs
+    if f(lo) * f(hi) > 0:
+        return h_obs
+    return float(brentq(f, lo, hi, xtol=1e-6 * h_obs))
