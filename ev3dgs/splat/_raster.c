@@ -329,13 +329,14 @@ static void *reduce_cameras(void *arg)
    cpu_tiles._sort_keys, float32 depths: any stable sort on the same keys gives the same permutation), then
    counted and placed in every tile their pixel box (boxes (C, N, 4), floor division by TILE as numba's //)
    touches. ev3dgs_raster_bin_count writes orders (C, N) (the first n_vis[c] of row c: camera c's visible
-   Gaussians front to back), n_vis (C,) and offsets (C * n_tiles + 1,) and returns the entry count (-1: out
-   of memory); ev3dgs_raster_bin_place then fills ids (that many). */
+   Gaussians front to back), their boxes in that order into sorted (C, N, 4) (read as a stream by both
+   passes), n_vis (C,) and offsets (C * n_tiles + 1,) and returns the entry count (-1: out of memory);
+   ev3dgs_raster_bin_place then fills ids (that many). */
 static inline int64_t floor_tile(int64_t a) { return a >= 0 ? a / TILE : -((-a + TILE - 1) / TILE); }
 
 int64_t ev3dgs_raster_bin_count(const int32_t *boxes, const int64_t *radii, const float *depths, int64_t C,
                                 int64_t N, int64_t tiles_x, int64_t tiles_y, int64_t *orders, int64_t *n_vis,
-                                int64_t *offsets)
+                                int64_t *offsets, int32_t *sorted)
 {
     int64_t n_tiles = tiles_x * tiles_y;
     uint32_t *keys = malloc((N > 0 ? N : 1) * sizeof(uint32_t));
@@ -371,8 +372,10 @@ int64_t ev3dgs_raster_bin_count(const int32_t *boxes, const int64_t *radii, cons
             memcpy(order, tmp, n * sizeof(int64_t));
         }
         int64_t *cnt = offsets + c * n_tiles + 1;
+        int32_t *bs = sorted + 4 * c * N;
+        for (int64_t j = 0; j < n; j++) memcpy(bs + 4 * j, boxes + 4 * (c * N + order[j]), 4 * sizeof(int32_t));
         for (int64_t j = 0; j < n; j++) {
-            const int32_t *b = boxes + 4 * (c * N + order[j]);
+            const int32_t *b = bs + 4 * j;
             int64_t tx0 = floor_tile(b[0]), tx1 = floor_tile(b[1]), ty0 = floor_tile(b[2]), ty1 = floor_tile(b[3]);
             for (int64_t ty = ty0; ty <= ty1; ty++)
                 for (int64_t tx = tx0; tx <= tx1; tx++) cnt[ty * tiles_x + tx]++;
@@ -384,7 +387,7 @@ int64_t ev3dgs_raster_bin_count(const int32_t *boxes, const int64_t *radii, cons
     return offsets[C * n_tiles];
 }
 
-int ev3dgs_raster_bin_place(const int32_t *boxes, const int64_t *orders, const int64_t *n_vis, int64_t C,
+int ev3dgs_raster_bin_place(const int32_t *sorted, const int64_t *orders, const int64_t *n_vis, int64_t C,
                             int64_t N, int64_t tiles_x, int64_t tiles_y, const int64_t *offsets, int64_t *ids)
 {
     int64_t n_tiles = tiles_x * tiles_y;
@@ -395,7 +398,7 @@ int ev3dgs_raster_bin_place(const int32_t *boxes, const int64_t *orders, const i
         const int64_t *order = orders + c * N;
         for (int64_t j = 0; j < n_vis[c]; j++) {
             int64_t g = order[j];
-            const int32_t *b = boxes + 4 * (c * N + g);
+            const int32_t *b = sorted + 4 * (c * N + j);
             int64_t tx0 = floor_tile(b[0]), tx1 = floor_tile(b[1]), ty0 = floor_tile(b[2]), ty1 = floor_tile(b[3]);
             for (int64_t ty = ty0; ty <= ty1; ty++)
                 for (int64_t tx = tx0; tx <= tx1; tx++) ids[fill[ty * tiles_x + tx]++] = g;

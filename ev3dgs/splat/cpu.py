@@ -243,7 +243,8 @@ class _RasterizeCPU(torch.autograd.Function):
         ctx.simd = cpu_simd.active(col.dtype, D)  # the C kernels (float32), else numba's
         gboxes = _parallel(_pixel_boxes, m, r, q, smax, width, height)  # (numba's: faster than a plain C loop)
         d = _np(depths)
-        if cpu_simd.bin_active(d):  # bitwise _bin's lists, in C
+        # bitwise _bin's lists in C on one thread (serial: with more threads numba's, parallel over cameras)
+        if cpu_simd.bin_active(d) and numba.get_num_threads() == 1:
             offsets, ids = cpu_simd.bin(gboxes, r, d, tiles_x, tiles_y)
         else:
             offsets, ids = _parallel(_bin, gboxes, r, d, tiles_x, tiles_y, _per_camera(C))

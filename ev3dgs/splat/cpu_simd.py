@@ -135,7 +135,7 @@ def _load():
         lib.ev3dgs_raster_pack.restype = ctypes.c_int64
         lib.ev3dgs_raster_reduce.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I]
         lib.ev3dgs_raster_reduce.restype = ctypes.c_int
-        lib.ev3dgs_raster_bin_count.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P]
+        lib.ev3dgs_raster_bin_count.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P]
         lib.ev3dgs_raster_bin_count.restype = ctypes.c_int64
         lib.ev3dgs_raster_bin_place.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P]
         lib.ev3dgs_raster_bin_place.restype = ctypes.c_int
@@ -246,18 +246,20 @@ def bin_active(depths) -> bool:
 
 
 def bin(boxes, radii, depths, tiles_x, tiles_y):
-    """cpu_tiles._bin's (offsets, ids), bitwise (the same lists for any thread count), serially in C: boxes
-    (C, N, 4) int32, radii (C, N) int64, depths (C, N) float32, all C-contiguous."""
+    """cpu_tiles._bin's (offsets, ids), bitwise, serially in C (the call uses it on one thread; numba's _bin,
+    parallel over cameras, on more): boxes (C, N, 4) int32, radii (C, N) int64, depths (C, N) float32, all
+    C-contiguous. Measured on one thread: about 0.8-0.9x the time of _bin (a 10k cloud at 200x200, 23 k entries;
+    a 50k scene at 346x260 with 5 cameras, 1.22 M entries)."""
     C, N = radii.shape
     orders, n_vis = np.empty((C, N), np.int64), np.empty(C, np.int64)
-    offsets = np.empty(C * tiles_x * tiles_y + 1, np.int64)
+    offsets, sorted_boxes = np.empty(C * tiles_x * tiles_y + 1, np.int64), np.empty((C, N, 4), np.int32)
     lib = _load()
     total = lib.ev3dgs_raster_bin_count(_ptr(boxes), _ptr(radii), _ptr(depths), C, N, tiles_x, tiles_y,
-                                        _ptr(orders), _ptr(n_vis), _ptr(offsets))
+                                        _ptr(orders), _ptr(n_vis), _ptr(offsets), _ptr(sorted_boxes))
     if total < 0:
         raise MemoryError("C rasterizer: binning")
     ids = np.empty(total, np.int64)
-    if lib.ev3dgs_raster_bin_place(_ptr(boxes), _ptr(orders), _ptr(n_vis), C, N, tiles_x, tiles_y, _ptr(offsets),
+    if lib.ev3dgs_raster_bin_place(_ptr(sorted_boxes), _ptr(orders), _ptr(n_vis), C, N, tiles_x, tiles_y, _ptr(offsets),
                                    _ptr(ids)) != 0:
         raise MemoryError("C rasterizer: binning")
     return offsets, ids
