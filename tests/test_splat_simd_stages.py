@@ -120,8 +120,8 @@ def test_backward_writes_every_row(budget, monkeypatch):
 @needs_c
 @pytest.mark.parametrize("C", [1, 3])
 def test_whole_call_bitwise_the_c_kernels_fed_by_the_numba_stages(C, monkeypatch):
-    """The C records, packing and gradient sum in the call (and the C binning) change no bit of its images and gradients: the same
-    call with the numba packing and sum around the same C kernels gives the same result."""
+    """The C binning, records, packing and gradient sum in the call change no bit of its images and gradients:
+    the same call with the numba binning, packing and sum around the same C kernels gives the same result."""
     W, H = 72, 56
     x = inputs(700, W, H, C=C, seed=31 + C)
     bg = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float32)
