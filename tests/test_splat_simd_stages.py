@@ -120,12 +120,16 @@ def test_backward_writes_every_row(budget, monkeypatch):
 @needs_c
 @pytest.mark.parametrize("C", [1, 3])
 def test_whole_call_bitwise_the_c_kernels_fed_by_the_numba_stages(C, monkeypatch):
-    """The C records, packing and gradient sum in the call change no bit of its images and gradients: the same
-    call with the numba packing and sum around the same C kernels gives the same result."""
+    """The C binning, records, packing and gradient sum in the call change no bit of its images and gradients:
+    the same call with the numba binning, packing and sum around the same C kernels gives the same result."""
     W, H = 72, 56
     x = inputs(700, W, H, C=C, seed=31 + C)
     bg = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float32)
+    binned_in_c = []
+    real_bin = cpu_simd.bin
+    monkeypatch.setattr(cpu_simd, "bin", lambda *a: binned_in_c.append(1) or real_bin(*a))
     got = rasterize("simd", x, W, H, bg)
+    assert binned_in_c  # the C binning ran
 
     def numba_pack(recs, ids, offsets, C, N, D, width, height, slots, n_threads):
         m, q, col = (recs[:, i:j].reshape(C, N, j - i).copy() for i, j in ((0, 2), (2, 5), (7, 7 + D)))
@@ -142,9 +146,113 @@ def test_whole_call_bitwise_the_c_kernels_fed_by_the_numba_stages(C, monkeypatch
         a[12][:] = 0.0
         return real_backward(*a)
 
+    monkeypatch.setattr(cpu_simd, "bin_active", lambda depths: False)  # numba's _bin
     monkeypatch.setattr(cpu_simd, "pack", numba_pack)
     monkeypatch.setattr(cpu_simd, "backward", zeroed_backward)
     monkeypatch.setattr(cpu_simd, "reduce", lambda per_pair, ids, offsets, C, N, t: _reduce(ids, per_pair, offsets,
                                                                                            C, N))
     want = rasterize("simd", x, W, H, bg)
     assert all(torch.equal(a, b) for a, b in zip(got, want))
+
+
+def numba_bin(boxes, radii, depths, tiles_x, tiles_y, chunks=1):
+    return _bin(boxes, radii, depths, tiles_x, tiles_y, chunks)
+
+
+@needs_c
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(0, 150), W=st.integers(1, 70), H=st.integers(1, 70),
+       C=st.integers(1, 3), levels=st.sampled_from([0, 3, 1 << 20]), signs=st.booleans())
+def test_c_bin_is_numba_bin_bitwise(seed, n, W, H, C, levels, signs):
+    """cpu_simd.bin gives cpu_tiles._bin's offsets and ids exactly: the projected boxes of a random scene, its
+    radii (0: not visible), depths with ties (quantised to ``levels`` values, 0: all equal) and, with
+    ``signs``, negative, -0.0 and +0.0 depths (the sort keys' sign handling)."""
+    m, q, col, o, d, r = (t.numpy() for t in inputs(n, W, H, C=C, seed=seed))
+    r = r.astype(np.int64)
+    rng = np.random.default_rng(seed)
+    if levels:
+        d = (np.floor(d * levels / max(1.0, float(d.max(initial=1.0)))) + 1).astype(np.float32)
+    else:
+        d = np.full_like(d, 2.5)
+    if signs and n:
+        d = np.where(rng.random(d.shape) < 0.3, -d, d).astype(np.float32)
+        d.flat[rng.integers(0, d.size, 3)] = rng.choice(np.array([0.0, -0.0], np.float32), 3)
+    d = np.ascontiguousarray(d)
+    smax = (np.log(np.maximum(o.astype(np.float64), 0.0) * 255.0) + 1e-6).astype(np.float32)
+    gboxes = _pixel_boxes(m, r, q, smax, W, H)
+    tx, ty = -(-W // TILE), -(-H // TILE)
+    want_offsets, want_ids = numba_bin(gboxes, r, d, tx, ty)
+    offsets, ids = cpu_simd.bin(gboxes, r, d, tx, ty)
+    assert np.array_equal(offsets, want_offsets)
+    assert np.array_equal(ids, want_ids)
+
+
+@needs_c
+def test_c_bin_sorts_every_byte_and_odd_boxes():
+    """Depths that differ in each of the four key bytes (no radix pass skipped), and boxes that are empty in
+    one axis or both, some with a negative end (numba's // floors, -1 // 16 = -1: no tile; C's / truncates
+    to 0, which would put the box in the first tile column or row)."""
+    rng = np.random.default_rng(3)
+    N, W = 3000, 160
+    d = rng.uniform(0.01, 1e6, (1, N)).astype(np.float32)
+    r = rng.integers(0, 3, (1, N)).astype(np.int64)
+    keys = d.view(np.uint32)
+    assert all(len(np.unique((keys >> (8 * b)) & 0xFF)) > 1 for b in range(4))
+    x0, y0 = rng.integers(0, W, N), rng.integers(0, W, N)
+    x1 = np.minimum(x0 + rng.integers(-20, 40, N), W - 1)
+    y1 = np.minimum(y0 + rng.integers(-20, 40, N), W - 1)
+    boxes = np.ascontiguousarray(np.stack([x0, x1, y0, y1], 1).astype(np.int32)[None])
+    boxes[0, :5] = (0, -1, 0, -1)
+    boxes[0, 5:10] = (0, -3, 2, 30)
+    boxes[0, 10:15] = (4, 20, 0, -1)
+    r[0, :15] = 1
+    assert (boxes[0, :, 1] < 0).sum() >= 5 and (boxes[0, :, 0] > boxes[0, :, 1]).sum() > 20
+    want = numba_bin(boxes, r, d, W // TILE, W // TILE)
+    got = cpu_simd.bin(boxes, r, d, W // TILE, W // TILE)
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert len(got[1]) > N
+
+
+def test_binning_falls_back_to_numba(monkeypatch):
+    """Without the C kernels (KERNEL "numba", as without a compiler) or with float64 depths the binning is
+    numba's _bin, and the call runs."""
+    monkeypatch.setattr(cpu_simd, "KERNEL", "numba")
+    assert not cpu_simd.bin_active(np.zeros(3, np.float32))
+    monkeypatch.setattr(cpu_simd, "KERNEL", "simd")
+    assert not cpu_simd.bin_active(np.zeros(3, np.float64))
+    calls = []
+    real = cpu._bin
+    monkeypatch.setattr(cpu, "_bin", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(cpu_simd, "bin", lambda *a: pytest.fail("the C binning ran"))
+    monkeypatch.setattr(cpu_simd, "_ext", None)  # as built without a compiler
+    W, H = 40, 30
+    x = inputs(200, W, H, seed=2)
+    bg = torch.zeros(3, dtype=torch.float32)
+    image = rasterize("simd", x, W, H, bg)[0]
+    assert calls and float(image.abs().sum()) > 0
+
+
+def test_single_camera_call_has_no_select_in_its_graph():
+    """A single-camera cpu call reaches the batched kernels through views (unsqueeze / squeeze), not selects:
+    a select's backward allocates a zero tensor of the whole batch and copies the gradient into it."""
+    from ev3dgs.splat.rasterize import rasterization
+
+    g = torch.Generator().manual_seed(0)
+    n = 50
+    means = torch.cat([torch.rand(n, 2, generator=g) - 0.5, 3 + torch.rand(n, 1, generator=g)], 1)
+    leaves = [t.requires_grad_(True) for t in (means, torch.randn(n, 4, generator=g), 0.05 + 0.05 * torch.rand(
+        n, 3, generator=g), 0.5 * torch.ones(n), torch.rand(n, 3, generator=g))]
+    K = torch.tensor([[40.0, 0, 20], [0, 40.0, 15], [0, 0, 1]])
+    image, alpha, meta = rasterization(*leaves, torch.eye(4), K, 40, 30, backend="cpu")
+    seen, stack = set(), [image.grad_fn, alpha.grad_fn]
+    while stack:
+        fn = stack.pop()
+        if fn is None or fn in seen:
+            continue
+        seen.add(fn)
+        stack.extend(f for f, _ in fn.next_functions)
+    names = {type(fn).__name__ for fn in seen}
+    assert "_RasterizeCPUBackward" in names and "_ProjectCPUBackward" in names
+    assert not any(name.startswith("SelectBackward") for name in names), names
+    (image.sum() + alpha.sum()).backward()
+    assert all(t.grad is not None and torch.isfinite(t.grad).all() for t in leaves[:3])

@@ -324,6 +324,90 @@ static void *reduce_cameras(void *arg)
     return NULL;
 }
 
+/* cpu_tiles._bin, serially (its lists do not depend on how it splits the work, so neither on this): per
+   camera the visible Gaussians (radius > 0) in a stable depth order (an LSD radix sort on the keys of
+   cpu_tiles._sort_keys, float32 depths: any stable sort on the same keys gives the same permutation), then
+   counted and placed in every tile their pixel box (boxes (C, N, 4), floor division by TILE as numba's //)
+   touches. ev3dgs_raster_bin_count writes orders (C, N) (the first n_vis[c] of row c: camera c's visible
+   Gaussians front to back), their boxes in that order into sorted (C, N, 4) (read as a stream by both
+   passes), n_vis (C,) and offsets (C * n_tiles + 1,) and returns the entry count (-1: out of memory);
+   ev3dgs_raster_bin_place then fills ids (that many). */
+static inline int64_t floor_tile(int64_t a) { return a >= 0 ? a / TILE : -((-a + TILE - 1) / TILE); }
+
+int64_t ev3dgs_raster_bin_count(const int32_t *boxes, const int64_t *radii, const float *depths, int64_t C,
+                                int64_t N, int64_t tiles_x, int64_t tiles_y, int64_t *orders, int64_t *n_vis,
+                                int64_t *offsets, int32_t *sorted)
+{
+    int64_t n_tiles = tiles_x * tiles_y;
+    uint32_t *keys = malloc((N > 0 ? N : 1) * sizeof(uint32_t));
+    int64_t *tmp = malloc((N > 0 ? N : 1) * sizeof(int64_t));
+    if (!keys || !tmp) {
+        free(keys);
+        free(tmp);
+        return -1;
+    }
+    memset(offsets, 0, (C * n_tiles + 1) * sizeof(int64_t));
+    for (int64_t c = 0; c < C; c++) {
+        int64_t *order = orders + c * N, n = 0;
+        for (int64_t g = 0; g < N; g++)
+            if (radii[c * N + g] > 0) {
+                uint32_t b;
+                memcpy(&b, depths + c * N + g, sizeof b);
+                keys[g] = (b & 0x80000000u) ? (b ^ 0xFFFFFFFFu) : (b | 0x80000000u);
+                order[n++] = g;
+            }
+        n_vis[c] = n;
+        for (int p = 0; p < 4; p++) {
+            int64_t count[257] = {0};
+            int shift = 8 * p;
+            for (int64_t i = 0; i < n; i++) count[((keys[order[i]] >> shift) & 0xFF) + 1]++;
+            int same = 0;
+            for (int b = 1; b <= 256; b++) same |= count[b] == n;
+            if (same) continue; /* every key has this byte: the pass would not move anything */
+            for (int b = 0; b < 256; b++) count[b + 1] += count[b];
+            for (int64_t i = 0; i < n; i++) {
+                int64_t j = order[i];
+                tmp[count[(keys[j] >> shift) & 0xFF]++] = j;
+            }
+            memcpy(order, tmp, n * sizeof(int64_t));
+        }
+        int64_t *cnt = offsets + c * n_tiles + 1;
+        int32_t *bs = sorted + 4 * c * N;
+        for (int64_t j = 0; j < n; j++) memcpy(bs + 4 * j, boxes + 4 * (c * N + order[j]), 4 * sizeof(int32_t));
+        for (int64_t j = 0; j < n; j++) {
+            const int32_t *b = bs + 4 * j;
+            int64_t tx0 = floor_tile(b[0]), tx1 = floor_tile(b[1]), ty0 = floor_tile(b[2]), ty1 = floor_tile(b[3]);
+            for (int64_t ty = ty0; ty <= ty1; ty++)
+                for (int64_t tx = tx0; tx <= tx1; tx++) cnt[ty * tiles_x + tx]++;
+        }
+    }
+    free(keys);
+    free(tmp);
+    for (int64_t gt = 0; gt < C * n_tiles; gt++) offsets[gt + 1] += offsets[gt];
+    return offsets[C * n_tiles];
+}
+
+int ev3dgs_raster_bin_place(const int32_t *sorted, const int64_t *orders, const int64_t *n_vis, int64_t C,
+                            int64_t N, int64_t tiles_x, int64_t tiles_y, const int64_t *offsets, int64_t *ids)
+{
+    int64_t n_tiles = tiles_x * tiles_y;
+    int64_t *fill = malloc((n_tiles > 0 ? n_tiles : 1) * sizeof(int64_t));
+    if (!fill) return -1;
+    for (int64_t c = 0; c < C; c++) {
+        memcpy(fill, offsets + c * n_tiles, n_tiles * sizeof(int64_t));
+        const int64_t *order = orders + c * N;
+        for (int64_t j = 0; j < n_vis[c]; j++) {
+            int64_t g = order[j];
+            const int32_t *b = sorted + 4 * (c * N + j);
+            int64_t tx0 = floor_tile(b[0]), tx1 = floor_tile(b[1]), ty0 = floor_tile(b[2]), ty1 = floor_tile(b[3]);
+            for (int64_t ty = ty0; ty <= ty1; ty++)
+                for (int64_t tx = tx0; tx <= tx1; tx++) ids[fill[ty * tiles_x + tx]++] = g;
+        }
+    }
+    free(fill);
+    return 0;
+}
+
 /* cpu_backward._reduce: per camera a serial sum of the entries' rows in tile-list order (the same float32
    additions in the same order, from 0: bitwise its result), into one row of sums per Gaussian (acc, (C, N,
    6 + D) scratch), then split into g_mean (C, N, 2), g_conic (C, N, 3), g_op (C, N), g_col (C, N, D).

@@ -56,6 +56,7 @@ from numba import njit, prange
 
 # the kernels live in cpu_tiles.py (constants, boxes, spans, depth sort, binning) and cpu_backward.py; the
 # names tests and tools reach through this module are imported here
+from .. import numba_cache
 from . import cpu_simd
 from .cpu_backward import _backward, _reduce
 from .cpu_tiles import ALPHA_MAX, ALPHA_MIN, SPAN_MIN_WIDTH, T_MIN, TILE  # noqa: F401
@@ -142,6 +143,8 @@ def _forward(params, boxes, offsets, work, background, width, height, tiles_x, i
 
 def announce_compile() -> None:
     """A one-line notice on stderr before the first process on a machine compiles the CPU kernels."""
+    if "splat-cpu" in numba_cache._NOTIFIED:  # told (or not needed) already: every later call returns here
+        return
     import sys
 
     from ..numba_cache import notify_first_compile
@@ -224,6 +227,8 @@ class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, depths, radii, width, height, background):
         """Batched: means2d (C,N,2), conics (C,N,3), colors (C,N,D) or shared (N,D), depths and radii (C,N)."""
+        # an output without a gradient reaches the backward as None, not as a zero tensor autograd would fill
+        ctx.set_materialize_grads(False)
         dtype = colors.dtype
         m, q, col, o = (_np(x.to(dtype)) for x in (means2d, conics, colors, opacities))
         C, N, D = m.shape[0], m.shape[1], col.shape[-1]
@@ -235,14 +240,19 @@ class _RasterizeCPU(torch.autograd.Function):
         # decides at the boundary) no exp is computed, and no tile or pixel outside that ellipse is visited
         with np.errstate(divide="ignore"):
             smax = (np.log(np.maximum(o.astype(np.float64), 0.0) * 255.0) + 1e-6).astype(col.dtype)
-        gboxes = _parallel(_pixel_boxes, m, r, q, smax, width, height)
-        offsets, ids = _parallel(_bin, gboxes, r, _np(depths), tiles_x, tiles_y, _per_camera(C))
+        ctx.simd = cpu_simd.active(col.dtype, D)  # the C kernels (float32), else numba's
+        gboxes = _parallel(_pixel_boxes, m, r, q, smax, width, height)  # (numba's: faster than a plain C loop)
+        d = _np(depths)
+        # bitwise _bin's lists in C on one thread (serial: with more threads numba's, parallel over cameras)
+        if cpu_simd.bin_active(d) and numba.get_num_threads() == 1:
+            offsets, ids = cpu_simd.bin(gboxes, r, d, tiles_x, tiles_y)
+        else:
+            offsets, ids = _parallel(_bin, gboxes, r, d, tiles_x, tiles_y, _per_camera(C))
         work = _work_order(offsets)
         image = np.empty((C, height, width, D), col.dtype)
         t_final = np.empty((C, height, width), col.dtype)
         last = np.empty((C, height, width), np.int64)
         record = any(ctx.needs_input_grad[:4])
-        ctx.simd = cpu_simd.active(col.dtype, D)  # the C kernels (float32), else numba's
         if ctx.simd:
             # the entries packed in C from one record per Gaussian (cpu_simd.records: no broadcast copy of
             # shared colours, one gather per entry instead of six), bitwise _pack's result
@@ -315,8 +325,8 @@ def rasterize_cpu(means2d, conics, colors, opacities, depths, radii, width: int,
     if threads is not None:
         set_numba_threads(threads)
     batched = means2d.ndim == 3
-    if not batched:
-        means2d, conics, depths, radii = means2d[None], conics[None], depths[None], radii[None]
+    if not batched:  # views in and out (unsqueeze / squeeze: their backward is a view too, no copy)
+        means2d, conics, depths, radii = (t.unsqueeze(0) for t in (means2d, conics, depths, radii))
     image, alpha = _RasterizeCPU.apply(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
                                        background.to(colors.dtype))
-    return (image, alpha) if batched else (image[0], alpha[0])
+    return (image, alpha) if batched else (image.squeeze(0), alpha.squeeze(0))

@@ -135,6 +135,10 @@ def _load():
         lib.ev3dgs_raster_pack.restype = ctypes.c_int64
         lib.ev3dgs_raster_reduce.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P, _P, _I]
         lib.ev3dgs_raster_reduce.restype = ctypes.c_int
+        lib.ev3dgs_raster_bin_count.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P, _P]
+        lib.ev3dgs_raster_bin_count.restype = ctypes.c_int64
+        lib.ev3dgs_raster_bin_place.argtypes = [_P, _P, _P, _I, _I, _I, _I, _P, _P]
+        lib.ev3dgs_raster_bin_place.restype = ctypes.c_int
         for name in ("ev3dgs_project_forward", "ev3dgs_project_backward"):
             getattr(lib, name).argtypes = [ctypes.POINTER(Proj)]
             getattr(lib, name).restype = None
@@ -233,6 +237,32 @@ def pack(recs, ids, offsets, C, N, D, width, height, slots: bool, n_threads: int
     _load().ev3dgs_raster_pack(_ptr(ids), _ptr(offsets), _ptr(recs), recs.shape[1], D, C, N, width, height,
                                -(-width // 16), _ptr(params), _ptr(boxes), _ptr(start), n_threads)
     return params, boxes, start
+
+
+def bin_active(depths) -> bool:
+    """Whether the binning runs in C: the C kernels selected and built, float32 depths (the numba binning
+    serves float64)."""
+    return KERNEL == "simd" and depths.dtype == np.float32 and available()
+
+
+def bin(boxes, radii, depths, tiles_x, tiles_y):
+    """cpu_tiles._bin's (offsets, ids), bitwise, serially in C (the call uses it on one thread; numba's _bin,
+    parallel over cameras, on more): boxes (C, N, 4) int32, radii (C, N) int64, depths (C, N) float32, all
+    C-contiguous. Measured on one thread: about 0.8-0.9x the time of _bin (a 10k cloud at 200x200, 23 k entries;
+    a 50k scene at 346x260 with 5 cameras, 1.22 M entries)."""
+    C, N = radii.shape
+    orders, n_vis = np.empty((C, N), np.int64), np.empty(C, np.int64)
+    offsets, sorted_boxes = np.empty(C * tiles_x * tiles_y + 1, np.int64), np.empty((C, N, 4), np.int32)
+    lib = _load()
+    total = lib.ev3dgs_raster_bin_count(_ptr(boxes), _ptr(radii), _ptr(depths), C, N, tiles_x, tiles_y,
+                                        _ptr(orders), _ptr(n_vis), _ptr(offsets), _ptr(sorted_boxes))
+    if total < 0:
+        raise MemoryError("C rasterizer: binning")
+    ids = np.empty(total, np.int64)
+    if lib.ev3dgs_raster_bin_place(_ptr(sorted_boxes), _ptr(orders), _ptr(n_vis), C, N, tiles_x, tiles_y, _ptr(offsets),
+                                   _ptr(ids)) != 0:
+        raise MemoryError("C rasterizer: binning")
+    return offsets, ids
 
 
 def reduce(per_pair, ids, offsets, C, N, n_threads):

@@ -468,6 +468,16 @@ def camera_table(viewmats: np.ndarray, K: np.ndarray, width: int, height: int):
     return cam, np.ascontiguousarray(campos)
 
 
+_AMIN: dict = {}
+
+
+def _alpha_min(dtype: torch.dtype) -> float:
+    """ALPHA_MIN rounded to ``dtype`` (as a Python float)."""
+    if dtype not in _AMIN:
+        _AMIN[dtype] = float(torch.tensor(ALPHA_MIN, dtype=dtype))
+    return _AMIN[dtype]
+
+
 class _ProjectCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, sh, viewmats, K, width, height, near, far, eps2d, deg):
@@ -481,8 +491,10 @@ class _ProjectCPU(torch.autograd.Function):
         vm = _f64(viewmats)
         cam, campos = camera_table(vm, _f64(K), width, height)
         C, N = vm.shape[0], m.shape[0]
+        # outputs without a gradient (depths, colours without SH) reach the backward as None, not as zero tensors
+        ctx.set_materialize_grads(False)
         # opacity below 1/255 is compared in the opacities' dtype, like the rasterizer's skip test
-        amin = float(torch.tensor(ALPHA_MIN, dtype=opacities.dtype))
+        amin = _alpha_min(opacities.dtype)
         odt = _out_dtype(dtype)
         means2d, conics = np.empty((C, N, 2), odt), np.empty((C, N, 3), odt)
         depths, colors = np.empty((C, N), odt), np.empty((C, N, 3), odt)

@@ -199,9 +199,9 @@ def _rasterization_cpu(means, quats, scales, opacities, colors, viewmat, K, widt
             cols = cols.expand(viewmats.shape[0], -1, -1)
         cols = torch.cat([cols, depths[..., None].to(cols.dtype)], dim=-1)
         background = torch.cat([background, background.new_zeros(1)])
-    if not batched:
-        m2d, conics, depths, radii = m2d[0], conics[0], depths[0], radii[0]
-        cols = cols[0] if cols.ndim == 3 else cols
+    if not batched:  # views (squeeze's backward is a view; a select's fills a zero tensor and copies into it)
+        m2d, conics, depths, radii = (t.squeeze(0) for t in (m2d, conics, depths, radii))
+        cols = cols.squeeze(0) if cols.ndim == 3 else cols
     image, alpha = rasterize_cpu(m2d, conics, cols, opacities, depths, radii, width, height, background,
                                  threads=threads)
     meta = {"means2d": m2d, "radii": radii, "depths": depths, "conics": conics, "width": width, "height": height,
