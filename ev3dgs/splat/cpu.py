@@ -191,6 +191,11 @@ def _per_camera(n_cameras: int) -> int:
     return max(1, -(-numba.get_num_threads() // max(1, n_cameras)))
 
 
+def _simd_frags(frags: tuple) -> tuple:
+    """The C kernels' fragment buffers: (frag_start, frag_e, frag_n), without frag_pix (the numba kernels')."""
+    return frags[::2] + frags[3:]
+
+
 def _fragment_buffers(boxes, dtype, simd=False, *, record: bool, start=None) -> tuple:
     """(frag_start, frag_pix, frag_e, frag_n) for the forward to record its fragments in: slots for every
     pixel of every tile-list entry's box (an upper bound); for the C kernels (``simd``) 8 slots per box row
@@ -262,7 +267,7 @@ class _RasterizeCPU(torch.autograd.Function):
                                                   _threads(work))
             frags = _fragment_buffers(boxes, col.dtype, True, record=record, start=fstart)
             cpu_simd.forward(params, boxes, offsets, work, bg, width, height, tiles_x, image, t_final, last,
-                             frags[::2] + frags[3:], _threads(work))
+                             _simd_frags(frags), _threads(work))
         else:
             if ctx.shared_colors:
                 col = np.ascontiguousarray(np.broadcast_to(col, (C,) + col.shape))
@@ -279,18 +284,17 @@ class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_image, grad_alpha):
         width, height, tiles_x, C, N, D = ctx.size
-        t_final = ctx.arrays[-3]
+        params, boxes, bg, offsets, ids, work, t_final, last, frags = ctx.arrays
         dtype = t_final.dtype
         gi = (np.zeros((C, height, width, D), dtype) if grad_image is None
               else _np(grad_image).astype(dtype, copy=False))
         ga = (np.zeros_like(t_final) if grad_alpha is None
               else _np(grad_alpha).astype(dtype, copy=False)[..., 0])
-        params, boxes, bg, offsets, ids, work, t_final, last, frags = ctx.arrays
         # replays the fragments when the forward recorded them (frags not empty), else recomputes them
         if ctx.simd:
             per_pair = np.empty((len(ids), 6 + D), dtype)  # every row written by the C backward
             cpu_simd.backward(params, boxes, offsets, work, bg, width, height, tiles_x, t_final, last,
-                              np.ascontiguousarray(gi), np.ascontiguousarray(ga), per_pair, frags[::2] + frags[3:],
+                              np.ascontiguousarray(gi), np.ascontiguousarray(ga), per_pair, _simd_frags(frags),
                               _threads(work), write_rows=True)
             g_mean, g_conic, g_ops, g_col = cpu_simd.reduce(per_pair, ids, offsets, C, N, _threads(work))
         else:
