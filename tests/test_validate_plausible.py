@@ -13,7 +13,7 @@ import pytest
 from ev3dgs import schema
 from ev3dgs.errors import SchemaError
 
-from test_reliability_validate import W, H, scene_copy, valid_file  # noqa: F401  (fixtures)
+from test_reliability_validate import W, H, valid_file  # noqa: F401  (valid_file: a fixture; scene_copy is conftest's)
 
 
 def _K(f, **entries):
