@@ -28,6 +28,15 @@ from ev3dgs.splat.sh import eval_sh
 
 from test_splat_batched import cameras
 
+
+@pytest.fixture(autouse=True)
+def c_projection(monkeypatch):
+    """The product leaves the C projection off (project_cpu.C_PROJECTION: see there); these tests are its
+    kernels' own, so they switch it on."""
+    import ev3dgs.splat.project_cpu as project_cpu
+
+    monkeypatch.setattr(project_cpu, "C_PROJECTION", True)
+
 needs_c = pytest.mark.skipif(not cpu_simd.available(), reason="the C rasterizer extension is not built")
 W, H = 64, 48
 

@@ -885,15 +885,21 @@ static void project_backward_gaussians(const proj_t *p, int64_t blk, int64_t n0,
 #undef TARGET
 #undef PROJ_BODY
 
-static void split_run(const proj_t *p, int64_t n_items, void *(*fn)(void *))
+/* the items split into contiguous ranges, one per thread, each starting at a multiple of `unit`: with unit 4
+   every Gaussian lands in the same group of 4 lanes (and the scalar tail is the last group's) for any thread
+   count, so the results do not depend on it */
+static void split_run(const proj_t *p, int64_t n_items, int64_t unit, void *(*fn)(void *))
 {
+    int64_t n_units = (n_items + unit - 1) / unit;
     int64_t n_threads = p->n_threads < 1 ? 1 : (p->n_threads > MAX_THREADS ? MAX_THREADS : p->n_threads);
-    if (n_threads > n_items) n_threads = n_items > 0 ? n_items : 1;
+    if (n_threads > n_units) n_threads = n_units > 0 ? n_units : 1;
     prange_t parts[MAX_THREADS];
     pthread_t tid[MAX_THREADS];
     int started[MAX_THREADS] = {0};
-    for (int64_t t = 0; t < n_threads; t++)
-        parts[t] = (prange_t){p, n_items * t / n_threads, n_items * (t + 1) / n_threads};
+    for (int64_t t = 0; t < n_threads; t++) {
+        int64_t lo = unit * (n_units * t / n_threads), hi = unit * (n_units * (t + 1) / n_threads);
+        parts[t] = (prange_t){p, lo < n_items ? lo : n_items, hi < n_items ? hi : n_items};
+    }
     for (int64_t t = 1; t < n_threads; t++) started[t] = pthread_create(&tid[t], NULL, fn, &parts[t]) == 0;
     fn(&parts[0]);
     for (int64_t t = 1; t < n_threads; t++) {
@@ -908,11 +914,11 @@ void ev3dgs_project_forward(const proj_t *p)
 {
 #if X86
     if (ev3dgs_raster_isa(p->isa)) {
-        split_run(p, p->N, project_forward_range4_avx2);
+        split_run(p, p->N, 4, project_forward_range4_avx2);
         return;
     }
 #endif
-    split_run(p, p->N, project_forward_range4_portable);
+    split_run(p, p->N, 4, project_forward_range4_portable);
 }
 
 void ev3dgs_project_backward(const proj_t *p)
@@ -920,11 +926,11 @@ void ev3dgs_project_backward(const proj_t *p)
     int64_t blocks = (p->N + VM_BLOCK - 1) / VM_BLOCK;
 #if X86
     if (ev3dgs_raster_isa(p->isa)) {
-        split_run(p, blocks, project_backward_range4_avx2);
+        split_run(p, blocks, 1, project_backward_range4_avx2);
         return;
     }
 #endif
-    split_run(p, blocks, project_backward_range4_portable);
+    split_run(p, blocks, 1, project_backward_range4_portable);
 }
 
 static PyMethodDef methods[] = {{NULL, NULL, 0, NULL}};
