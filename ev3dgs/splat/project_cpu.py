@@ -492,7 +492,8 @@ class _ProjectCPU(torch.autograd.Function):
         dtype = means.dtype
         m, q, s = _in(means), _in(quats), _in(scales)
         o = _in(opacities)
-        ctx.c = C_PROJECTION and cpu_simd.project_active(m, q, s, o, *((_in(sh),) if deg >= 0 else ()))  # C kernels (float32)
+        # the C kernels (float32), where switched on
+        ctx.c = C_PROJECTION and cpu_simd.project_active(m, q, s, o, *((_in(sh),) if deg >= 0 else ()))
         shc = _in(sh) if deg >= 0 else np.zeros((len(m), 1, 3), np.float32 if ctx.c else np.float64)
         vm = _f64(viewmats)
         cam, campos = camera_table(vm, _f64(K), width, height)
