@@ -1301,10 +1301,69 @@ static inline TARGET v4d SUF(dsqrt)(v4d x)
 #endif
 }
 
-static TARGET void SUF(project_forward4)(const proj_t *p, int64_t n)
+/* the SH basis up to degree deg (at most 3) at the unit directions (ux, uy, uz), the scalar kernels' operations */
+static TARGET inline void SUF(sh_basis4)(int64_t deg, v4d ux, v4d uy, v4d uz, v4d *basis)
 {
-    int64_t N = p->N, C = p->C, deg = p->deg, K = (deg + 1) * (deg + 1), KS = p->KS;
-    v4d px, py, pz, qw, qx, qy, qz, sx, sy, sz, o, lg;
+    v4d two = SUF(dbc)(2.0);
+    basis[0] = SUF(dbc)(SH_C0);
+    if (deg >= 1) {
+        basis[1] = SUF(dbc)(-SH_C1) * uy;
+        basis[2] = SUF(dbc)(SH_C1) * uz;
+        basis[3] = SUF(dbc)(-SH_C1) * ux;
+    }
+    if (deg >= 2) {
+        v4d xx = ux * ux, yy = uy * uy, zz = uz * uz, xy = ux * uy, yz2 = uy * uz, xz2 = ux * uz;
+        v4d three = SUF(dbc)(3.0), four = SUF(dbc)(4.0);
+        basis[4] = SUF(dbc)(SH_C2[0]) * xy;
+        basis[5] = SUF(dbc)(SH_C2[1]) * yz2;
+        basis[6] = SUF(dbc)(SH_C2[2]) * (two * zz - xx - yy);
+        basis[7] = SUF(dbc)(SH_C2[3]) * xz2;
+        basis[8] = SUF(dbc)(SH_C2[4]) * (xx - yy);
+        if (deg >= 3) {
+            basis[9] = SUF(dbc)(SH_C3[0]) * uy * (three * xx - yy);
+            basis[10] = SUF(dbc)(SH_C3[1]) * xy * uz;
+            basis[11] = SUF(dbc)(SH_C3[2]) * uy * (four * zz - xx - yy);
+            basis[12] = SUF(dbc)(SH_C3[3]) * uz * (two * zz - three * xx - three * yy);
+            basis[13] = SUF(dbc)(SH_C3[4]) * ux * (four * zz - xx - yy);
+            basis[14] = SUF(dbc)(SH_C3[5]) * uz * (xx - yy);
+            basis[15] = SUF(dbc)(SH_C3[6]) * ux * (xx - three * yy);
+        }
+    }
+}
+
+/* the screen-space covariance of 4 Gaussians in one camera (world-to-camera rows v, 3D covariance S, the
+   projection's Jacobian entries j00, j02, j11, j12): T = J W (rows t0, t1) and C2 = T S T^T + eps2d I, the
+   scalar kernels' operations */
+static TARGET inline void SUF(cov2d4)(const v4d *S, const double *v, v4d j00, v4d j02, v4d j11, v4d j12,
+                                      double eps2d, v4d *t0, v4d *t1, v4d *c11, v4d *c12, v4d *c22)
+{
+    t0[0] = j00 * SUF(dbc)(v[0]) + j02 * SUF(dbc)(v[8]), t0[1] = j00 * SUF(dbc)(v[1]) + j02 * SUF(dbc)(v[9]);
+    t0[2] = j00 * SUF(dbc)(v[2]) + j02 * SUF(dbc)(v[10]);
+    t1[0] = j11 * SUF(dbc)(v[4]) + j12 * SUF(dbc)(v[8]), t1[1] = j11 * SUF(dbc)(v[5]) + j12 * SUF(dbc)(v[9]);
+    t1[2] = j11 * SUF(dbc)(v[6]) + j12 * SUF(dbc)(v[10]);
+    v4d u0 = S[0] * t0[0] + S[1] * t0[1] + S[2] * t0[2];
+    v4d u1 = S[3] * t0[0] + S[4] * t0[1] + S[5] * t0[2];
+    v4d u2 = S[6] * t0[0] + S[7] * t0[1] + S[8] * t0[2];
+    v4d v0 = S[0] * t1[0] + S[1] * t1[1] + S[2] * t1[2];
+    v4d v1 = S[3] * t1[0] + S[4] * t1[1] + S[5] * t1[2];
+    v4d v2 = S[6] * t1[0] + S[7] * t1[1] + S[8] * t1[2];
+    v4d eps = SUF(dbc)(eps2d);
+    *c11 = t0[0] * u0 + t0[1] * u1 + t0[2] * u2 + eps;
+    *c12 = t0[0] * v0 + t0[1] * v1 + t0[2] * v2;
+    *c22 = t1[0] * v0 + t1[1] * v1 + t1[2] * v2 + eps;
+}
+
+/* 4 Gaussians n ... n + 3 loaded (a non-finite row's lane: zero mean, unit quaternion and scales) with what
+   both projection passes derive from them, in the scalar kernels' operations: the normalised quaternion, the
+   rotation R, M = R diag(s) and the 3D covariance S = M M^T */
+typedef struct {
+    v4l fin;
+    v4d px, py, pz, qw, qx, qy, qz, sx, sy, sz, sq, inv, w_, x_, y_, z_, r[9], m[9], S[9];
+} SUF(gauss4_t);
+
+static TARGET inline void SUF(gauss4)(const proj_t *p, int64_t n, SUF(gauss4_t) *G)
+{
+    v4d px, py, pz, qw, qx, qy, qz, sx, sy, sz;
     v4l fin;
     for (int i = 0; i < 4; i++) {
         int64_t g = n + i;
@@ -1312,8 +1371,6 @@ static TARGET void SUF(project_forward4)(const proj_t *p, int64_t n)
         px[i] = p->means[3 * g], py[i] = p->means[3 * g + 1], pz[i] = p->means[3 * g + 2];
         qw[i] = p->quats[4 * g], qx[i] = p->quats[4 * g + 1], qy[i] = p->quats[4 * g + 2], qz[i] = p->quats[4 * g + 3];
         sx[i] = p->scales[3 * g], sy[i] = p->scales[3 * g + 1], sz[i] = p->scales[3 * g + 2];
-        o[i] = fin[i] ? (double)p->opac[g] : 1.0;
-        lg[i] = log(255.0 * o[i]);
     }
     v4d zero = SUF(dbc)(0.0), one = SUF(dbc)(1.0), two = SUF(dbc)(2.0);
     px = SUF(dsel)(fin, px, zero), py = SUF(dsel)(fin, py, zero), pz = SUF(dsel)(fin, pz, zero);
@@ -1334,6 +1391,25 @@ static TARGET void SUF(project_forward4)(const proj_t *p, int64_t n)
     v4d s12 = m[3] * m[6] + m[4] * m[7] + m[5] * m[8];
     v4d s22 = m[6] * m[6] + m[7] * m[7] + m[8] * m[8];
     v4d S[9] = {s00, s01, s02, s01, s11, s12, s02, s12, s22};
+    *G = (SUF(gauss4_t)){fin, px, py, pz, qw, qx, qy, qz, sx, sy, sz, sq, inv, w_, x_, y_, z_,
+                         {r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]},
+                         {m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8]},
+                         {S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7], S[8]}};
+}
+
+static TARGET void SUF(project_forward4)(const proj_t *p, int64_t n)
+{
+    int64_t N = p->N, C = p->C, deg = p->deg, K = (deg + 1) * (deg + 1), KS = p->KS;
+    SUF(gauss4_t) g4;
+    SUF(gauss4)(p, n, &g4);
+    v4l fin = g4.fin;
+    v4d px = g4.px, py = g4.py, pz = g4.pz, *S = g4.S;
+    v4d o, lg;
+    for (int i = 0; i < 4; i++) {
+        o[i] = fin[i] ? (double)p->opac[n + i] : 1.0;
+        lg[i] = log(255.0 * o[i]);
+    }
+    v4d zero = SUF(dbc)(0.0), one = SUF(dbc)(1.0), two = SUF(dbc)(2.0);
     v4d extent = SUF(dsqrt)(two * SUF(dmax)(lg, zero));
     v4l bright = ~(o < SUF(dbc)(p->alpha_min));
     for (int64_t c = 0; c < C; c++) {
@@ -1351,20 +1427,8 @@ static TARGET void SUF(project_forward4)(const proj_t *p, int64_t n)
         v4d rz = one / z;
         v4d vfx = SUF(dbc)(fx), vfy = SUF(dbc)(fy);
         v4d j00 = vfx * rz, j02 = -vfx * tx * rz * rz, j11 = vfy * rz, j12 = -vfy * ty * rz * rz;
-        v4d t0[3] = {j00 * SUF(dbc)(v[0]) + j02 * SUF(dbc)(v[8]), j00 * SUF(dbc)(v[1]) + j02 * SUF(dbc)(v[9]),
-                     j00 * SUF(dbc)(v[2]) + j02 * SUF(dbc)(v[10])};
-        v4d t1[3] = {j11 * SUF(dbc)(v[4]) + j12 * SUF(dbc)(v[8]), j11 * SUF(dbc)(v[5]) + j12 * SUF(dbc)(v[9]),
-                     j11 * SUF(dbc)(v[6]) + j12 * SUF(dbc)(v[10])};
-        v4d u0 = S[0] * t0[0] + S[1] * t0[1] + S[2] * t0[2];
-        v4d u1 = S[3] * t0[0] + S[4] * t0[1] + S[5] * t0[2];
-        v4d u2 = S[6] * t0[0] + S[7] * t0[1] + S[8] * t0[2];
-        v4d v0 = S[0] * t1[0] + S[1] * t1[1] + S[2] * t1[2];
-        v4d v1 = S[3] * t1[0] + S[4] * t1[1] + S[5] * t1[2];
-        v4d v2 = S[6] * t1[0] + S[7] * t1[1] + S[8] * t1[2];
-        v4d eps = SUF(dbc)(p->eps2d);
-        v4d c11 = t0[0] * u0 + t0[1] * u1 + t0[2] * u2 + eps;
-        v4d c12 = t0[0] * v0 + t0[1] * v1 + t0[2] * v2;
-        v4d c22 = t1[0] * v0 + t1[1] * v1 + t1[2] * v2 + eps;
+        v4d t0[3], t1[3], c11, c12, c22;
+        SUF(cov2d4)(S, v, j00, j02, j11, j12, p->eps2d, t0, t1, &c11, &c12, &c22);
         v4d det = SUF(dmax)(c11 * c22 - c12 * c12, SUF(dbc)(1e-12));
         v4d ca = c22 / det, cb = -c12 / det, cc = c11 / det;
         v4d mx = vfx * xz + SUF(dbc)(cam[2]), my = vfy * yz + SUF(dbc)(cam[3]);
@@ -1379,30 +1443,7 @@ static TARGET void SUF(project_forward4)(const proj_t *p, int64_t n)
             v4d di = one / SUF(dsqrt)(d2);
             v4d ux = dx * di, uy = dy * di, uz = dz * di;
             v4d basis[16];
-            basis[0] = SUF(dbc)(SH_C0);
-            if (deg >= 1) {
-                basis[1] = SUF(dbc)(-SH_C1) * uy;
-                basis[2] = SUF(dbc)(SH_C1) * uz;
-                basis[3] = SUF(dbc)(-SH_C1) * ux;
-            }
-            if (deg >= 2) {
-                v4d xx = ux * ux, yy = uy * uy, zz = uz * uz, xy = ux * uy, yz2 = uy * uz, xz2 = ux * uz;
-                v4d three = SUF(dbc)(3.0), four = SUF(dbc)(4.0);
-                basis[4] = SUF(dbc)(SH_C2[0]) * xy;
-                basis[5] = SUF(dbc)(SH_C2[1]) * yz2;
-                basis[6] = SUF(dbc)(SH_C2[2]) * (two * zz - xx - yy);
-                basis[7] = SUF(dbc)(SH_C2[3]) * xz2;
-                basis[8] = SUF(dbc)(SH_C2[4]) * (xx - yy);
-                if (deg >= 3) {
-                    basis[9] = SUF(dbc)(SH_C3[0]) * uy * (three * xx - yy);
-                    basis[10] = SUF(dbc)(SH_C3[1]) * xy * uz;
-                    basis[11] = SUF(dbc)(SH_C3[2]) * uy * (four * zz - xx - yy);
-                    basis[12] = SUF(dbc)(SH_C3[3]) * uz * (two * zz - three * xx - three * yy);
-                    basis[13] = SUF(dbc)(SH_C3[4]) * ux * (four * zz - xx - yy);
-                    basis[14] = SUF(dbc)(SH_C3[5]) * uz * (xx - yy);
-                    basis[15] = SUF(dbc)(SH_C3[6]) * ux * (xx - three * yy);
-                }
-            }
+            SUF(sh_basis4)(deg, ux, uy, uz, basis);
             for (int ch = 0; ch < 3; ch++) {
                 v4d acc = zero;
                 for (int64_t k = 0; k < K; k++) {
@@ -1456,34 +1497,13 @@ static TARGET void *SUF(project_forward_range4)(void *arg)
 static TARGET void SUF(project_backward4)(const proj_t *p, int64_t n, double *gvm)
 {
     int64_t N = p->N, C = p->C, deg = p->deg, K = (deg + 1) * (deg + 1), KS = p->KS;
-    v4d px, py, pz, qw, qx, qy, qz, sx, sy, sz;
-    v4l fin;
-    for (int i = 0; i < 4; i++) {
-        int64_t g = n + i;
-        fin[i] = finite_row(p, g) ? -1 : 0;
-        px[i] = p->means[3 * g], py[i] = p->means[3 * g + 1], pz[i] = p->means[3 * g + 2];
-        qw[i] = p->quats[4 * g], qx[i] = p->quats[4 * g + 1], qy[i] = p->quats[4 * g + 2], qz[i] = p->quats[4 * g + 3];
-        sx[i] = p->scales[3 * g], sy[i] = p->scales[3 * g + 1], sz[i] = p->scales[3 * g + 2];
-    }
+    SUF(gauss4_t) g4;
+    SUF(gauss4)(p, n, &g4);
+    v4l fin = g4.fin;
+    v4d px = g4.px, py = g4.py, pz = g4.pz, qw = g4.qw, qx = g4.qx, qy = g4.qy, qz = g4.qz;
+    v4d sx = g4.sx, sy = g4.sy, sz = g4.sz, sq = g4.sq, inv = g4.inv, w_ = g4.w_, x_ = g4.x_, y_ = g4.y_;
+    v4d z_ = g4.z_, *r = g4.r, *m = g4.m, *S = g4.S;
     v4d zero = SUF(dbc)(0.0), one = SUF(dbc)(1.0), two = SUF(dbc)(2.0), half = SUF(dbc)(0.5);
-    px = SUF(dsel)(fin, px, zero), py = SUF(dsel)(fin, py, zero), pz = SUF(dsel)(fin, pz, zero);
-    qw = SUF(dsel)(fin, qw, one), qx = SUF(dsel)(fin, qx, one), qy = SUF(dsel)(fin, qy, one);
-    qz = SUF(dsel)(fin, qz, one);
-    sx = SUF(dsel)(fin, sx, one), sy = SUF(dsel)(fin, sy, one), sz = SUF(dsel)(fin, sz, one);
-    v4d sq = qw * qw + qx * qx + qy * qy + qz * qz;
-    v4d inv = one / SUF(dsqrt)(SUF(dmax)(sq, SUF(dbc)(1e-24)));
-    v4d w_ = qw * inv, x_ = qx * inv, y_ = qy * inv, z_ = qz * inv;
-    v4d r[9] = {one - two * (y_ * y_ + z_ * z_), two * (x_ * y_ - w_ * z_), two * (x_ * z_ + w_ * y_),
-                two * (x_ * y_ + w_ * z_), one - two * (x_ * x_ + z_ * z_), two * (y_ * z_ - w_ * x_),
-                two * (x_ * z_ - w_ * y_), two * (y_ * z_ + w_ * x_), one - two * (x_ * x_ + y_ * y_)};
-    v4d m[9] = {r[0] * sx, r[1] * sy, r[2] * sz, r[3] * sx, r[4] * sy, r[5] * sz, r[6] * sx, r[7] * sy, r[8] * sz};
-    v4d s00 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
-    v4d s01 = m[0] * m[3] + m[1] * m[4] + m[2] * m[5];
-    v4d s02 = m[0] * m[6] + m[1] * m[7] + m[2] * m[8];
-    v4d s11 = m[3] * m[3] + m[4] * m[4] + m[5] * m[5];
-    v4d s12 = m[3] * m[6] + m[4] * m[7] + m[5] * m[8];
-    v4d s22 = m[6] * m[6] + m[7] * m[7] + m[8] * m[8];
-    v4d S[9] = {s00, s01, s02, s01, s11, s12, s02, s12, s22};
     v4d gpx = zero, gpy = zero, gpz = zero, gS[9], gsh[48];
     for (int i = 0; i < 9; i++) gS[i] = zero;
     for (int i = 0; i < 48; i++) gsh[i] = zero;
@@ -1503,18 +1523,8 @@ static TARGET void SUF(project_backward4)(const proj_t *p, int64_t n, double *gv
         v4d tx = z * cxz, ty = z * cyz;
         v4d rz = one / z;
         v4d j00 = vfx * rz, j02 = -vfx * tx * rz * rz, j11 = vfy * rz, j12 = -vfy * ty * rz * rz;
-        v4d t0[3] = {j00 * V[0] + j02 * V[8], j00 * V[1] + j02 * V[9], j00 * V[2] + j02 * V[10]};
-        v4d t1[3] = {j11 * V[4] + j12 * V[8], j11 * V[5] + j12 * V[9], j11 * V[6] + j12 * V[10]};
-        v4d u0 = S[0] * t0[0] + S[1] * t0[1] + S[2] * t0[2];
-        v4d u1 = S[3] * t0[0] + S[4] * t0[1] + S[5] * t0[2];
-        v4d u2 = S[6] * t0[0] + S[7] * t0[1] + S[8] * t0[2];
-        v4d v0 = S[0] * t1[0] + S[1] * t1[1] + S[2] * t1[2];
-        v4d v1 = S[3] * t1[0] + S[4] * t1[1] + S[5] * t1[2];
-        v4d v2 = S[6] * t1[0] + S[7] * t1[1] + S[8] * t1[2];
-        v4d eps = SUF(dbc)(p->eps2d);
-        v4d c11 = t0[0] * u0 + t0[1] * u1 + t0[2] * u2 + eps;
-        v4d c12 = t0[0] * v0 + t0[1] * v1 + t0[2] * v2;
-        v4d c22 = t1[0] * v0 + t1[1] * v1 + t1[2] * v2 + eps;
+        v4d t0[3], t1[3], c11, c12, c22;
+        SUF(cov2d4)(S, vm, j00, j02, j11, j12, p->eps2d, t0, t1, &c11, &c12, &c22);
         v4d det_raw = c11 * c22 - c12 * c12;
         v4d det = SUF(dmax)(det_raw, SUF(dbc)(1e-12));
         v4d ga, gbb, gc, gm0, gm1, gdep;
@@ -1578,30 +1588,8 @@ static TARGET void SUF(project_backward4)(const proj_t *p, int64_t n, double *gv
             v4d ux = dx * di, uy = dy * di, uz = dz * di;
             v4d basis[16], gb[16];
             v4d three = SUF(dbc)(3.0), four = SUF(dbc)(4.0), six = SUF(dbc)(6.0), eight = SUF(dbc)(8.0);
-            basis[0] = SUF(dbc)(SH_C0);
+            SUF(sh_basis4)(deg, ux, uy, uz, basis);
             v4d xx = ux * ux, yy = uy * uy, zz = uz * uz;
-            if (deg >= 1) {
-                basis[1] = SUF(dbc)(-SH_C1) * uy;
-                basis[2] = SUF(dbc)(SH_C1) * uz;
-                basis[3] = SUF(dbc)(-SH_C1) * ux;
-            }
-            if (deg >= 2) {
-                v4d xy = ux * uy, yz2 = uy * uz, xz2 = ux * uz;
-                basis[4] = SUF(dbc)(SH_C2[0]) * xy;
-                basis[5] = SUF(dbc)(SH_C2[1]) * yz2;
-                basis[6] = SUF(dbc)(SH_C2[2]) * (two * zz - xx - yy);
-                basis[7] = SUF(dbc)(SH_C2[3]) * xz2;
-                basis[8] = SUF(dbc)(SH_C2[4]) * (xx - yy);
-                if (deg >= 3) {
-                    basis[9] = SUF(dbc)(SH_C3[0]) * uy * (three * xx - yy);
-                    basis[10] = SUF(dbc)(SH_C3[1]) * xy * uz;
-                    basis[11] = SUF(dbc)(SH_C3[2]) * uy * (four * zz - xx - yy);
-                    basis[12] = SUF(dbc)(SH_C3[3]) * uz * (two * zz - three * xx - three * yy);
-                    basis[13] = SUF(dbc)(SH_C3[4]) * ux * (four * zz - xx - yy);
-                    basis[14] = SUF(dbc)(SH_C3[5]) * uz * (xx - yy);
-                    basis[15] = SUF(dbc)(SH_C3[6]) * ux * (xx - three * yy);
-                }
-            }
             for (int64_t k = 0; k < K; k++) gb[k] = zero;
             for (int ch = 0; ch < 3; ch++) {
                 v4d shv[16], gcol;

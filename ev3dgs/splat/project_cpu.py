@@ -503,9 +503,10 @@ class _ProjectCPU(torch.autograd.Function):
         # opacity below 1/255 is compared in the opacities' dtype, like the rasterizer's skip test
         amin = _alpha_min(opacities.dtype)
         odt = _out_dtype(dtype)
-        means2d, conics = np.zeros((C, N, 2), odt), np.zeros((C, N, 3), odt)
-        depths, colors = np.zeros((C, N), odt), np.zeros((C, N, 3), odt)
-        radii = np.zeros((C, N), np.int32)
+        new = np.zeros if ctx.c else np.empty   # the numba kernel writes every entry; the C kernels are zero-filled
+        means2d, conics = new((C, N, 2), odt), new((C, N, 3), odt)
+        depths, colors = new((C, N), odt), new((C, N, 3), odt)
+        radii = new((C, N), np.int32)
         if ctx.c:
             cpu_simd.project_forward(m, q, s, o, shc, deg, vm, campos, cam, width, height, near, far, eps2d, amin,
                                      RADIUS_MARGIN, means2d, conics, depths, colors, radii, numba.get_num_threads())
