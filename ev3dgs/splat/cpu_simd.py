@@ -82,6 +82,7 @@ ISA = -1  # -1: best build for this CPU, 0: the portable build, 1: AVX2 (where t
 DMAX = 8  # colour channels the C kernels serve (as in _raster.c)
 LANES = 8
 # benchmarks: a list to which every call appends ("forward" or "backward", per-tile thread CPU time in ns)
+TILE = 16   # the C kernels' tile side, as cpu_tiles.TILE
 TILE_TIMES: list | None = None
 # exp(-sigma)'s relative error bound (derivation above), and the unit roundoff of float32
 U32 = 2.0 ** -24
@@ -235,7 +236,7 @@ def pack(recs, ids, offsets, C, N, D, width, height, slots: bool, n_threads: int
     params, boxes = np.empty((K, 7 + D), np.float32), np.empty((K, 4), np.int32)
     start = np.empty(K + 1, np.int64) if slots else None
     _load().ev3dgs_raster_pack(_ptr(ids), _ptr(offsets), _ptr(recs), recs.shape[1], D, C, N, width, height,
-                               -(-width // 16), _ptr(params), _ptr(boxes), _ptr(start), n_threads)
+                               -(-width // TILE), _ptr(params), _ptr(boxes), _ptr(start), n_threads)
     return params, boxes, start
 
 
@@ -283,7 +284,7 @@ def forward(params, boxes, offsets, work, background, width, height, tiles_x, im
     """cpu._forward's contract (float32); frags = (frag_start, frag_e, frag_n), frag_n empty: not recorded."""
     start, fe, fn = frags
     record = len(fn) == len(params) and len(params) > 0
-    n_tiles = tiles_x * (-(-height // 16))
+    n_tiles = tiles_x * (-(-height // TILE))
     job = Job(_ptr(params), _ptr(boxes), _ptr(offsets), _ptr(work), len(work), _ptr(background),
               image.shape[3], width, height, tiles_x, n_tiles, _ptr(image), _ptr(t_final), _ptr(last),
               _ptr(start), _ptr(fe), _ptr(fn), int(record), None, None, None, n_threads, ISA, _tile_ns(offsets), 0)
@@ -298,7 +299,7 @@ def backward(params, boxes, offsets, work, background, width, height, tiles_x, t
     ``write_rows`` written (every row, 0 for an entry without fragments: per_pair need not be zeroed)."""
     start, fe, fn = frags
     record = len(fn) == len(params) and len(params) > 0
-    n_tiles = tiles_x * (-(-height // 16))
+    n_tiles = tiles_x * (-(-height // TILE))
     job = Job(_ptr(params), _ptr(boxes), _ptr(offsets), _ptr(work), len(work), _ptr(background),
               per_pair.shape[1] - 6, width, height, tiles_x, n_tiles, None, _ptr(t_final), _ptr(last),
               _ptr(start), _ptr(fe), _ptr(fn), int(record), _ptr(grad_image), _ptr(grad_alpha), _ptr(per_pair),
@@ -313,14 +314,19 @@ def project_active(*arrays) -> bool:
     return KERNEL == "simd" and all(a.dtype == np.float32 for a in arrays) and available()
 
 
+def _proj(m, q, s, o, sh, deg, vm, campos, cam, near, far, eps2d, n_threads, **fields) -> Proj:
+    """The proj_t both projection passes share (the Gaussians, cameras and settings) plus ``fields``."""
+    return Proj(means=_ptr(m), quats=_ptr(q), scales=_ptr(s), opac=_ptr(o), sh=_ptr(sh), N=len(m), C=len(vm),
+                KS=sh.shape[1], deg=deg, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam), near=near, far=far,
+                eps2d=eps2d, n_threads=n_threads, isa=ISA, **fields)
+
+
 def project_forward(m, q, s, o, sh, deg, vm, campos, cam, width, height, near, far, eps2d, alpha_min, radius_margin,
                     means2d, conics, depths, colors, radii, n_threads):
     """project_cpu._project_forward's contract, float32 inputs and outputs (bitwise its results)."""
-    p = Proj(means=_ptr(m), quats=_ptr(q), scales=_ptr(s), opac=_ptr(o), sh=_ptr(sh), N=len(m), C=len(vm),
-             KS=sh.shape[1], deg=deg, width=width, height=height, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam),
-             near=near, far=far, eps2d=eps2d, alpha_min=alpha_min, radius_margin=radius_margin,
-             means2d=_ptr(means2d), conics=_ptr(conics), depths=_ptr(depths), colors=_ptr(colors), radii=_ptr(radii),
-             n_threads=n_threads, isa=ISA)
+    p = _proj(m, q, s, o, sh, deg, vm, campos, cam, near, far, eps2d, n_threads, width=width, height=height,
+              alpha_min=alpha_min, radius_margin=radius_margin, means2d=_ptr(means2d), conics=_ptr(conics),
+              depths=_ptr(depths), colors=_ptr(colors), radii=_ptr(radii))
     _load().ev3dgs_project_forward(ctypes.byref(p))
 
 
@@ -328,9 +334,7 @@ def project_backward(m, q, s, o, sh, deg, vm, campos, cam, near, far, eps2d, g_m
                      g_means, g_quats, g_scales, g_sh, want_vm, g_vm, n_threads):
     """project_cpu._project_backward's contract, float32 inputs and gradients (rounded from its float64 ones:
     bitwise the numba kernel's after .to(float32)); g_vm (blocks, C, 15) float64, zeroed."""
-    p = Proj(means=_ptr(m), quats=_ptr(q), scales=_ptr(s), opac=_ptr(o), sh=_ptr(sh), N=len(m), C=len(vm),
-             KS=sh.shape[1], deg=deg, vm=_ptr(vm), campos=_ptr(campos), cam=_ptr(cam), near=near, far=far,
-             eps2d=eps2d, g_m2d=_ptr(g_m2d), g_con=_ptr(g_con), g_dep=_ptr(g_dep), g_col=_ptr(g_col),
-             g_means=_ptr(g_means), g_quats=_ptr(g_quats), g_scales=_ptr(g_scales), g_sh=_ptr(g_sh),
-             want_vm=int(want_vm), g_vm=_ptr(g_vm), n_threads=n_threads, isa=ISA)
+    p = _proj(m, q, s, o, sh, deg, vm, campos, cam, near, far, eps2d, n_threads, g_m2d=_ptr(g_m2d),
+              g_con=_ptr(g_con), g_dep=_ptr(g_dep), g_col=_ptr(g_col), g_means=_ptr(g_means), g_quats=_ptr(g_quats),
+              g_scales=_ptr(g_scales), g_sh=_ptr(g_sh), want_vm=int(want_vm), g_vm=_ptr(g_vm))
     _load().ev3dgs_project_backward(ctypes.byref(p))
