@@ -136,6 +136,18 @@ def check_outputs(out, force: bool = True) -> None:
         check_output_file(path, option=option, force=force, make_parents=True)
 
 
+def timeline(seconds: float, fps: float, exposure_ms: float, render_rate_hz: float) -> tuple:
+    """(soe, eoe, duration_us, t_rel) of a recording, relative to its start: the frames' exposure starts and
+    ends (us), the recording's length, and the times of the rendered frames (every 1 / render_rate_hz and the
+    last microsecond). Unchecked: record validates its arguments first."""
+    soe = READOUT_US + np.round(np.arange(int(round(seconds * fps))) * (1e6 / fps)).astype(np.int64)
+    eoe = soe + int(round(exposure_ms * 1000))
+    duration_us = max(int(round(seconds * 1e6)), int(eoe[-1]) + READOUT_US)
+    t_rel = np.unique(np.append(np.round(np.arange(0, duration_us, 1e6 / render_rate_hz)).astype(np.int64),
+                                duration_us))
+    return soe, eoe, duration_us, t_rel
+
+
 def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, exposure_ms: float = 50,
            render_rate_hz: float = 250, width: int = 346, height: int = 260, samples: int = 8, seed: int = 0,
            workers: int = 1, quiet: bool = True, arc_deg: float = 75.0, compression: str = "lz4",
@@ -164,11 +176,7 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
     n_frames = int(round(seconds * fps))
     if n_frames < 1:
         raise InputError("the recording needs at least one frame (seconds * fps >= 1)")
-    soe = READOUT_US + np.round(np.arange(n_frames) * period_us).astype(np.int64)
-    eoe = soe + exposure_us
-    duration_us = max(int(round(seconds * 1e6)), int(eoe[-1]) + READOUT_US)
-    step_us = 1e6 / render_rate_hz
-    t_rel = np.unique(np.append(np.round(np.arange(0, duration_us, step_us)).astype(np.int64), duration_us))
+    soe, eoe, duration_us, t_rel = timeline(seconds, fps, exposure_ms, render_rate_hz)
     if len(t_rel) < 2:
         raise InputError("render_rate_hz is too low for the duration")
     traj = Trajectory(render.radius, float(np.mean(render.elevation_deg)), duration_us * 1e-6, arc_deg,
@@ -259,4 +267,5 @@ def record(scene_name_or_toml, out, seconds: float = 2.0, fps: float = 10, expos
             "readback_error": float(np.abs(readback - poses).max()), "seconds": timing}
 
 
-__all__ = ["record", "outputs", "check_outputs", "Trajectory", "imu_samples", "EPOCH_US", "READOUT_US", "IMU_RATE_HZ"]
+__all__ = ["record", "timeline", "outputs", "check_outputs", "Trajectory", "imu_samples", "EPOCH_US", "READOUT_US",
+           "IMU_RATE_HZ"]

@@ -64,6 +64,8 @@ PARAMS = [  # (name, truth attribute, getter on a Calibration)
 ]
 # the issue's sensors: (ON, OFF threshold, mismatch as a share of the mean threshold, refractory us, leak Hz,
 # shot noise Hz); the simulator draws both polarities' thresholds with one absolute sigma
+RECORD_FPS, RECORD_EXPOSURE_MS, RECORD_RENDER_HZ = 25, 10, 250   # the record mode's camera
+
 SENSORS = {
     "A": (0.15, 0.25, 0.15, 200.0, 0.1, 2.0),
     "B": (0.3, 0.3, 0.25, 500.0, 0.5, 0.5),
@@ -146,8 +148,9 @@ def record_mode(args) -> dict:
             out = work / f"rec_s{seed}_{args.seconds:g}s.aedat4"
             final = work / f"rec_{name}_s{seed}_{args.seconds:g}s.aedat4"
             if not final.exists():
-                info = record(str(scene), out, seconds=args.seconds, fps=25, exposure_ms=10, render_rate_hz=250,
-                              width=173, height=130, samples=args.samples, seed=seed, keep_cache=True,
+                info = record(str(scene), out, seconds=args.seconds, fps=RECORD_FPS,
+                              exposure_ms=RECORD_EXPOSURE_MS, render_rate_hz=RECORD_RENDER_HZ, width=173, height=130,
+                              samples=args.samples, seed=seed, keep_cache=True,
                               quiet=False)
                 shutil.move(out, final)
                 print(f"{name} seed {seed}: recorded {info['events']} events, {info['frames']} frames "
@@ -175,7 +178,8 @@ def record_mode(args) -> dict:
                 f"{k} {row[k]['value']:.4g} (truth {row[k]['truth']:g})" if row[k]["value"] is not None
                 else f"{k} - ({row[k]['note'][:60]})" for k in truth) + f", hot {row['hot_pixels']}", flush=True)
     return {"rows": rows, "settings": {"scene": args.scene, "shake_deg": args.shake_deg, "seconds": args.seconds,
-                                       "size": "173x130", "fps": 25, "exposure_ms": 10, "render_rate_hz": 250,
+                                       "size": "173x130", "fps": RECORD_FPS, "exposure_ms": RECORD_EXPOSURE_MS,
+                                       "render_rate_hz": RECORD_RENDER_HZ,
                                        "samples": args.samples, "bootstrap": args.bootstrap},
             "sensors": {k: dict(zip(("pos", "neg", "mismatch_share", "refractory_us", "leak_hz", "shot_hz"), v))
                         for k, v in SENSORS.items()}}
@@ -200,17 +204,14 @@ def _fail(message: str):
 def _cached_render(work: Path, seed: int, seconds: float):
     """The rendered linear frames `record` cached for (seed, duration) and their times (us, as `record`
     simulates them: 250 Hz over the recording, 25 fps frames of 10 ms)."""
-    from ev3dgs.sim.record import EPOCH_US, READOUT_US
+    from ev3dgs.sim.record import EPOCH_US, timeline
 
     caches = sorted(work.glob(f".rec_s{seed}_{seconds:g}s.cache-*"))
     if not caches:
         _fail(f"no render cache .rec_s{seed}_{seconds:g}s.cache-* in {work} (run record first)")
     files = sorted(caches[0].glob("traj_*.npz"))
     frames = np.concatenate([np.load(f)["frames"] for f in files])
-    n_frames = int(round(seconds * 25))
-    eoe = READOUT_US + np.round((n_frames - 1) * 1e6 / 25) + 10_000
-    duration_us = max(int(round(seconds * 1e6)), int(eoe) + READOUT_US)
-    t_rel = np.unique(np.append(np.round(np.arange(0, duration_us, 1e6 / 250)).astype(np.int64), duration_us))
+    t_rel = timeline(seconds, RECORD_FPS, RECORD_EXPOSURE_MS, RECORD_RENDER_HZ)[3]
     if len(t_rel) != len(frames):
         _fail(f"the render cache has {len(frames)} frames, the recording needs {len(t_rel)}")
     return frames, EPOCH_US + t_rel
